@@ -1,0 +1,40 @@
+# ibr_pipeline — the two commands a newcomer needs:  `make demo`  and  `make test`.
+PYTHON ?= python3
+VENV   ?= .venv
+OUT    ?= out
+JOBS   ?= 2
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: install demo demo-full test test-slow clean-demo help
+
+help:
+	@echo "make demo       install, then run the pipeline on sample_data/ (results in $(OUT)/demo)"
+	@echo "make test       install, then run the test suite (fast tests)"
+	@echo "make test-slow  install, then run only the slow tests"
+	@echo "make install    system libraries (apt-get, when missing) + virtualenv $(VENV)"
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml requirements.lock scripts/install_system_deps.sh
+	bash scripts/install_system_deps.sh
+	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), f"Python 3.11 needed, {sys.version.split()[0]} found (set PYTHON=...)"'
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -r requirements.lock
+	$(BIN)/python -m pip install --quiet --no-deps --no-build-isolation -e . 2>/dev/null || \
+		$(BIN)/python -m pip install --quiet --no-deps -e .
+	touch $(STAMP)
+
+demo: install
+	$(BIN)/ibr run $(OUT)/demo --input sample_data --jobs $(JOBS)
+	$(BIN)/ibr status $(OUT)/demo
+
+test: install
+	$(BIN)/python -m pytest
+
+test-slow: install
+	$(BIN)/python -m pytest -m slow
+
+clean-demo:
+	rm -rf $(OUT)/demo

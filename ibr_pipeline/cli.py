@@ -1,0 +1,233 @@
+"""`ibr`: the command-line interface. One subcommand per stage, plus init/run/status/stages/synth.
+
+Exit codes: 0 done (stages that are not built yet are reported, not errors); 1 a stage failed (its
+error is printed, tracebacks are kept under WS/.ibr/logs/); 2 bad input (one line naming the file or
+field; nothing written). Heavy libraries are imported only by the code that runs a stage, so
+`ibr --help` returns at once.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from .config import describe_fields
+from .errors import InputError
+
+log = logging.getLogger("ibr_pipeline")
+
+EPILOG = """\
+workspaces: a folder for one scene's outputs. `ibr init WS --input DIR` (or `ibr run WS --input
+DIR`) creates WS/ibr.toml naming the input folder: a COLMAP workspace (images/ + sparse/0), images/ +
+cameras.json, or a bare folder of images, optionally with depth/ (16-bit PNG, mm) and reflectors.json.
+configs: each stage reads the table [stage] of WS/ibr.toml; `--set stage.field=value` (ibr run) or
+`--field value` (ibr STAGE) overrides it. `ibr stages` lists every field with its default.
+exit codes: 0 ok, 1 a stage failed, 2 bad input."""
+
+
+def _stages():
+    from .stages import STAGES
+    return STAGES
+
+
+def _add_exec_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true", help="rerun the selected stages even if up to date")
+    p.add_argument("--dry-run", action="store_true", help="say what would run and why; run nothing")
+    p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
+                   help="worker processes for per-view stages (default 1: run in this process)")
+    p.add_argument("--dask-scheduler", metavar="ADDR",
+                   help="run per-view tasks on a Dask cluster, e.g. tcp://10.0.0.5:8786 "
+                        "(workers need the workspace at the same path)")
+    p.add_argument("--dask-local", type=int, default=0, metavar="N",
+                   help="start a local Dask cluster with N worker processes for per-view tasks")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ibr", description="Image-based rendering of indoor scenes with reflections "
+        "(Xu et al. 2021; Lochmann et al. 2014).", epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("init", help="create a workspace for an input folder")
+    p.add_argument("workspace", type=Path, help="workspace folder to create")
+    p.add_argument("--input", type=Path, required=True, help="input folder (images, cameras, depth)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing ibr.toml")
+
+    p = sub.add_parser("run", help="run every stage that is not up to date, in order")
+    p.add_argument("workspace", type=Path, help="workspace folder")
+    p.add_argument("--input", type=Path, help="input folder; creates the workspace if needed")
+    p.add_argument("--from", dest="from_stage", metavar="STAGE", help="first stage to run")
+    p.add_argument("--until", dest="until_stage", metavar="STAGE", help="last stage to run")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.FIELD=VALUE",
+                   help="override a config value (repeatable)")
+    _add_exec_args(p)
+
+    p = sub.add_parser("status", help="say for every stage whether it would run, and why")
+    p.add_argument("workspace", type=Path, help="workspace folder")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.FIELD=VALUE",
+                   help="evaluate as if this config value were set (repeatable)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+
+    sub.add_parser("stages", help="list the stages and every config field with its default")
+
+    for s in _stages():
+        p = sub.add_parser(s.name, help=f"stage: {s.help}" + ("" if s.built else " [not built yet]"),
+                           description=f"Stage {s.name}: {s.help}."
+                           + ("" if s.built else f" Not built yet ({s.todo})."))
+        p.add_argument("workspace", type=Path, help="workspace folder")
+        for name, typ, default, hlp in describe_fields(s.config):
+            p.add_argument(f"--{name.replace('_', '-')}", dest=f"cfg__{name}", metavar=typ.upper(),
+                           help=f"{hlp} (default: {default})")
+        _add_exec_args(p)
+
+    from .synthetic import cli as synth_cli
+    p = sub.add_parser("synth", help="generate a synthetic scene with exact ground truth")
+    synth_cli.add_synth_arguments(p)
+    p = sub.add_parser("synth-bench", help="benchmark synthetic scene generation")
+    synth_cli.add_bench_arguments(p)
+    return parser
+
+
+def _parse_overrides(items: list[str]) -> dict[str, dict]:
+    out: dict[str, dict] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        stage, dot, name = key.partition(".")
+        if not sep or not dot or not stage or not name:
+            raise InputError(f"--set {item!r}: expected STAGE.FIELD=VALUE")
+        out.setdefault(stage, {})[name] = value
+    return out
+
+
+def _setup_logging(verbose: bool, quiet: bool) -> None:
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+
+    class Fmt(logging.Formatter):
+        def format(self, record):
+            msg = super().format(record)
+            return msg if record.levelno == logging.INFO else f"{record.levelname.lower()}: {msg}"
+
+    handler.setFormatter(Fmt("%(message)s"))
+    root = logging.getLogger("ibr_pipeline")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+
+
+def _init_workspace(ws_path: Path, input_path: Path, force: bool):
+    from .workspace import CONFIG_FILE, Workspace
+    if not input_path.is_dir():
+        raise InputError(f"{input_path}: input folder does not exist")
+    cfg = ws_path / CONFIG_FILE
+    if cfg.exists() and not force:
+        raise InputError(f"{cfg}: already exists (use --force to overwrite)")
+    ws_path.mkdir(parents=True, exist_ok=True)
+    ws = Workspace(ws_path)
+    ws.write_text(CONFIG_FILE, f"# ibr_pipeline workspace\n[input]\npath = "
+                  f"{json.dumps(str(input_path.resolve()))}\n")
+    log.info("workspace %s created for input %s", ws.root, input_path.resolve())
+    return Workspace(ws_path)
+
+
+def _open_workspace(args):
+    from .workspace import Workspace
+    ws_path: Path = args.workspace
+    given = getattr(args, "input", None)
+    if given is not None:
+        if not (ws_path / "ibr.toml").is_file():
+            return _init_workspace(ws_path, given, force=False)
+        ws = Workspace(ws_path)
+        if ws.input_root.resolve() != given.resolve():
+            raise InputError(f"{ws.config_path}: workspace already uses input {ws.input_root}, "
+                             f"not {given.resolve()} (edit ibr.toml or use another workspace)")
+        return ws
+    ws = Workspace(ws_path)
+    if not ws.input_root.is_dir():
+        raise InputError(f"{ws.config_path}: input folder {ws.input_root} does not exist")
+    return ws
+
+
+def _cmd_stages(args) -> int:
+    for s in _stages():
+        print(f"{s.name}: {s.help}" + ("" if s.built else f"  [not built yet: {s.todo}]"))
+        for name, typ, default, hlp in describe_fields(s.config):
+            print(f"    {name} ({typ}, default {default!r}): {hlp}")
+    return 0
+
+
+def _cmd_status(args) -> int:
+    from .pipeline import load_configs, status, status_table
+    stages = _stages()
+    ws = _open_workspace(args)
+    plans = status(stages, ws, load_configs(stages, ws, _parse_overrides(args.overrides)))
+    if args.json:
+        print(json.dumps([{"stage": p.stage.name, "state": p.state, "reason": p.summary(),
+                           "views_todo": p.views_todo, "views_total": p.views_total}
+                          for p in plans], indent=1))
+    else:
+        print(status_table(plans))
+    return 0
+
+
+def _cmd_run(args, only: str | None = None, overrides: dict | None = None) -> int:
+    from .executors import make_executor
+    from .pipeline import load_configs, run, select_stages, status, status_table, timing_table
+    stages = _stages()
+    if args.jobs < 1 or args.dask_local < 0:
+        raise InputError("--jobs must be >= 1 and --dask-local >= 0")
+    selected = select_stages(stages, getattr(args, "from_stage", None),
+                             getattr(args, "until_stage", None), only)
+    ws = _open_workspace(args)
+    configs = load_configs(stages, ws, overrides)
+    if args.dry_run:
+        print(status_table(status(stages, ws, configs, args.force, selected)))
+        return 0
+    with make_executor(args.jobs, args.dask_scheduler, args.dask_local) as executor:
+        results = run(stages, ws, configs, selected, args.force, executor,
+                      progress=not args.no_progress)
+    log.info("\n%s", timing_table(results))
+    missing = [r.name for r in results if r.result == "not built"]
+    if missing:
+        log.warning("not built yet (no outputs written for them): %s", ", ".join(missing))
+    return 1 if any(r.result in ("failed", "blocked") for r in results) else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose, args.quiet)
+    try:
+        if args.command == "init":
+            _init_workspace(args.workspace, args.input, args.force)
+            return 0
+        if args.command == "stages":
+            return _cmd_stages(args)
+        if args.command == "status":
+            return _cmd_status(args)
+        if args.command == "run":
+            return _cmd_run(args, overrides=_parse_overrides(args.overrides))
+        if args.command == "synth":
+            from .synthetic import cli as synth_cli
+            return synth_cli.synth_main(args)
+        if args.command == "synth-bench":
+            from .synthetic import cli as synth_cli
+            return synth_cli.bench_main(args)
+        cfg = {k[5:]: v for k, v in vars(args).items() if k.startswith("cfg__") and v is not None}
+        return _cmd_run(args, only=args.command, overrides={args.command: cfg})
+    except InputError as e:
+        print(f"ibr: error: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print("ibr: interrupted; finished work is kept, rerun to continue", file=sys.stderr)
+        return 130
+
+
+def entry() -> None:
+    sys.exit(main())

@@ -1,0 +1,223 @@
+"""Running the stage table on a workspace: configs, status, execution, the timing table.
+
+`status()` and `run()` are what `ibr status` and `ibr run` call. Everything that can be checked
+before work starts (workspace, ibr.toml, config values, stage names) is checked first, so bad input
+exits with nothing written.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Sequence
+
+from .config import StageConfig, build_config
+from .errors import ConfigError, InputError
+from .executors import Executor, LocalExecutor
+from .runner import (HashCache, Stage, StageContext, StagePlan, error_line, expand, format_traceback,
+                     make_record, output_record, plan_stage, run_view_task, write_record)
+from .workspace import Workspace, atomic_path
+
+log = logging.getLogger("ibr_pipeline")
+
+
+def load_configs(stages: Sequence[Stage], ws: Workspace,
+                 overrides: dict[str, dict] | None = None) -> dict[str, StageConfig]:
+    """Each stage's config: defaults < ibr.toml table [stage] < overrides (command line)."""
+    toml = ws.config()
+    names = {s.name for s in stages}
+    for key, value in toml.items():
+        if key == "input":
+            continue
+        if key not in names:
+            raise InputError(f"{ws.config_path}: unknown table [{key}] (stages: {', '.join(names)})")
+        if not isinstance(value, dict):
+            raise InputError(f"{ws.config_path}: [{key}] must be a table of config fields")
+    overrides = overrides or {}
+    for key in overrides:
+        if key not in names:
+            raise InputError(f"unknown stage {key!r} in --set (stages: {', '.join(names)})")
+    configs = {}
+    for s in stages:
+        table = toml.get(s.name, {})
+        try:
+            build_config(s.config, s.name, table)
+        except ConfigError as e:
+            raise InputError(f"{ws.config_path}: {e}") from None
+        configs[s.name] = build_config(s.config, s.name, table, overrides.get(s.name, {}))
+    return configs
+
+
+def select_stages(stages: Sequence[Stage], from_stage: str | None = None,
+                  until_stage: str | None = None, only: str | None = None) -> list[Stage]:
+    names = [s.name for s in stages]
+    for given in (from_stage, until_stage, only):
+        if given is not None and given not in names:
+            raise InputError(f"unknown stage {given!r} (stages: {', '.join(names)})")
+    if only is not None:
+        return [s for s in stages if s.name == only]
+    lo = names.index(from_stage) if from_stage else 0
+    hi = names.index(until_stage) if until_stage else len(names) - 1
+    if lo > hi:
+        raise InputError(f"--from {from_stage} comes after --until {until_stage}")
+    return list(stages[lo:hi + 1])
+
+
+def _load_scene(ws: Workspace):
+    return ws.scene() if ws.exists(ws.SCENE) else None
+
+
+def status(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
+           force: bool = False, selected: Sequence[Stage] | None = None) -> list[StagePlan]:
+    """The plan for every stage in order: would it run, and why. Reads only."""
+    hashes = HashCache(ws.hash_cache_path)
+    scene = _load_scene(ws)
+    selected_names = {s.name for s in (selected if selected is not None else stages)}
+    plans, upstream = [], None
+    for s in stages:
+        ctx = StageContext(ws, s.name, configs[s.name], scene)
+        plan = plan_stage(s, ctx, hashes, force and s.name in selected_names, upstream)
+        if plan.state == "will run" and s.name not in selected_names:
+            plan.reasons = ["not selected (--from/--until)"] + plan.reasons
+            plan.state = "not selected"
+        plans.append(plan)
+        if plan.state == "will run" and upstream is None:
+            upstream = s.name
+    return plans
+
+
+@dataclass
+class StageResult:
+    name: str
+    result: str
+    views_run: int = 0
+    views_failed: int = 0
+    views_total: int = 0
+    seconds: float = 0.0
+    failures: list[tuple[str, str]] = field(default_factory=list)  # (view, one-line error)
+
+
+def _run_whole(stage: Stage, ctx: StageContext, plan: StagePlan) -> StageResult:
+    ws = ctx.ws
+    t0 = time.perf_counter()
+    try:
+        stage.run(ctx)
+        outputs = output_record(expand(stage.outputs, ctx), ws)
+    except InputError:
+        raise  # bad input: the CLI prints it and exits 2; the stage wrote nothing under a real name
+    except Exception as e:
+        dt = time.perf_counter() - t0
+        _save_traceback(ws, stage.name, None, e)
+        write_record(ws.state_file(stage.name),
+                     make_record(stage, ctx, "failed", plan.input_hashes, seconds=dt, error=error_line(e)))
+        return StageResult(stage.name, "failed", seconds=dt, failures=[("", error_line(e))])
+    dt = time.perf_counter() - t0
+    write_record(ws.state_file(stage.name),
+                 make_record(stage, ctx, "ok", plan.input_hashes, outputs=outputs, seconds=dt))
+    return StageResult(stage.name, "ran", seconds=dt)
+
+
+def _run_views(stage: Stage, ctx: StageContext, plan: StagePlan, executor: Executor,
+               progress: bool) -> StageResult:
+    from tqdm import tqdm
+
+    ws = ctx.ws
+    todo = plan.views_todo
+    res = StageResult(stage.name, "ran", views_total=plan.views_total)
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(todo), desc=f"{stage.name} [{executor.name}]", unit="view",
+               disable=not progress, leave=True)
+    try:
+        for i, out, exc in executor.map_unordered(run_view_task, [(stage, ctx, v) for v in todo]):
+            view = todo[i]
+            if exc is None:
+                rec = make_record(stage, ctx, "ok", plan.input_hashes[view], view,
+                                  out["outputs"], out["seconds"])
+                res.views_run += 1
+            else:
+                msg = error_line(exc)
+                _save_traceback(ws, stage.name, view, exc)
+                rec = make_record(stage, ctx, "failed", plan.input_hashes[view], view, error=msg)
+                res.views_failed += 1
+                res.failures.append((view, msg))
+                bar.write(f"{stage.name}: view {view} failed: {msg}")
+            write_record(ws.state_file(stage.name, view), rec)
+            bar.update(1)
+    finally:
+        bar.close()
+    res.seconds = time.perf_counter() - t0
+    if res.views_failed:
+        res.result = "failed"
+    return res
+
+
+def _save_traceback(ws: Workspace, stage: str, view: str | None, exc: BaseException) -> None:
+    from .workspace import view_key
+    path = ws.root / ".ibr" / "logs" / stage / f"{view_key(view) if view else 'stage'}.txt"
+    with atomic_path(path) as tmp:
+        tmp.write_text(format_traceback(exc))
+
+
+def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
+        selected: Sequence[Stage], force: bool = False, executor: Executor | None = None,
+        progress: bool = True) -> list[StageResult]:
+    """Run the selected stages in order; returns one StageResult per selected stage.
+
+    Stops after a stage that failed or is blocked; a stage that is not built yet is reported and
+    skipped (so are the stages that need its outputs: they are blocked).
+    """
+    executor = executor or LocalExecutor(1)
+    removed = ws.clean_temporaries()
+    if removed:
+        log.info("removed %d temporary file(s) left by an interrupted run", removed)
+    hashes = HashCache(ws.hash_cache_path)
+    results: list[StageResult] = []
+    try:
+        for s in selected:
+            ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws))
+            plan = plan_stage(s, ctx, hashes, force, None)
+            if plan.state == "not built":
+                log.warning("stage %-13s NOT BUILT YET — %s", s.name, s.todo or "planned")
+                results.append(StageResult(s.name, "not built"))
+                continue
+            if plan.state == "blocked":
+                log.warning("stage %-13s blocked: %s", s.name, plan.summary())
+                results.append(StageResult(s.name, "blocked"))
+                continue
+            if plan.state == "up to date":
+                log.info("stage %-13s up to date", s.name)
+                results.append(StageResult(s.name, "up to date", views_total=plan.views_total))
+                continue
+            log.info("stage %-13s running: %s", s.name, plan.summary())
+            if s.per_view:
+                r = _run_views(s, ctx, plan, executor, progress)
+            else:
+                r = _run_whole(s, ctx, plan)
+            results.append(r)
+            hashes.save()
+            if r.result == "failed":
+                for view, msg in r.failures:
+                    log.error("%s%s failed: %s", s.name, f" view {view}" if view else "", msg)
+                log.error("stage %s failed; later stages not run. Tracebacks: %s. A rerun redoes "
+                          "only what failed or is stale.", s.name, ws.root / ".ibr" / "logs" / s.name)
+                break
+    finally:
+        hashes.save()
+    return results
+
+
+def timing_table(results: Sequence[StageResult]) -> str:
+    rows = [("stage", "result", "views run", "failed", "seconds")]
+    for r in results:
+        views = f"{r.views_run}/{r.views_total}" if r.views_total else "-"
+        rows.append((r.name, r.result, views, str(r.views_failed or "-"), f"{r.seconds:.2f}"))
+    rows.append(("total", "", "", "", f"{sum(r.seconds for r in results):.2f}"))
+    widths = [max(len(row[i]) for row in rows) for i in range(5)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def status_table(plans: Sequence[StagePlan]) -> str:
+    width = max(len(p.stage.name) for p in plans)
+    return "\n".join(f"{p.stage.name.ljust(width)}  {p.state.ljust(12)}  {p.summary()}" for p in plans)

@@ -1,0 +1,138 @@
+"""Scene types, camera conventions and the input readers (COLMAP, cameras.json, bare images)."""
+import json
+
+import numpy as np
+import pytest
+
+from ibr_pipeline.errors import InputError
+from ibr_pipeline.io.colmap import read_colmap_model, write_colmap_model
+from ibr_pipeline.io.images import read_depth_png, write_depth_png, write_image
+from ibr_pipeline.scene import Camera, Reflector, Scene, cameras_to_json, read_input
+
+
+def _cams(n=4, w=64, h=48):
+    K = Camera.intrinsics_from_fov(w, h, 60)
+    rng = np.random.default_rng(0)
+    return {f"img_{i:02d}.png": Camera.look_at(rng.uniform(-1, 1, 3), [0, 0, 4] + rng.uniform(-.5, .5, 3),
+                                               [0, 0, 1], K, w, h) for i in range(n)}
+
+
+def test_project_unproject_round_trip():
+    cam = next(iter(_cams().values()))
+    rng = np.random.default_rng(1)
+    uv = rng.uniform([0, 0], [63, 47], (50, 2))
+    depth = rng.uniform(0.5, 8, 50)
+    pts = cam.unproject(uv, depth)
+    uv2, z = cam.project(pts)
+    np.testing.assert_allclose(uv2, uv, atol=1e-9)
+    np.testing.assert_allclose(z, depth, atol=1e-9)
+    # the optical axis points along +z of the camera and the centre projects to depth 0
+    np.testing.assert_allclose(cam.R @ cam.viewing_direction, [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(cam.world_from_cam @ cam.cam_from_world, np.eye(4), atol=1e-12)
+
+
+def test_resized_keeps_pixel_centres():
+    cam = next(iter(_cams().values()))
+    half = cam.resized(32, 24)
+    pts = cam.unproject(np.array([[10.0, 20.0]]), np.array([3.0]))
+    uv_full, _ = cam.project(pts)
+    uv_half, _ = half.project(pts)
+    np.testing.assert_allclose(uv_half, (uv_full + 0.5) / 2 - 0.5, atol=1e-9)
+
+
+def test_camera_rejects_bad_matrices():
+    cam = next(iter(_cams().values()))
+    with pytest.raises(InputError, match="NaN"):
+        Camera(np.full((3, 3), np.nan), cam.cam_from_world, 64, 48)
+    bad = cam.cam_from_world.copy()
+    bad[:3, :3] *= 2
+    with pytest.raises(InputError, match="not a proper rotation"):
+        Camera(cam.K, bad, 64, 48)
+    with pytest.raises(InputError, match="size must be positive"):
+        Camera(cam.K, cam.cam_from_world, 0, 48)
+
+
+@pytest.mark.parametrize("text", [True, False])
+def test_colmap_model_round_trip(tmp_path, text):
+    cams = _cams()
+    write_colmap_model(cams, tmp_path / "sparse", text=text)
+    back = read_colmap_model(tmp_path / "sparse")
+    assert set(back) == set(cams)
+    for name, cam in cams.items():
+        np.testing.assert_allclose(back[name].K, cam.K, atol=1e-9)
+        np.testing.assert_allclose(back[name].cam_from_world, cam.cam_from_world, atol=1e-9)
+        # pycolmap projects with its own (+0.5) convention: same pixel after our conversion
+        assert back[name].size == cam.size
+
+
+def test_colmap_pixel_convention_matches_pycolmap(tmp_path):
+    import pycolmap
+    cams = _cams(1)
+    write_colmap_model(cams, tmp_path / "m")
+    rec = pycolmap.Reconstruction(str(tmp_path / "m"))
+    image = next(iter(rec.images.values()))
+    cam = cams[image.name]
+    X = cam.unproject(np.array([[20.0, 30.0]]), np.array([2.5]))[0]
+    uv_colmap = image.project_point(X)
+    np.testing.assert_allclose(uv_colmap, [20.5, 30.5], atol=1e-6)
+
+
+def _write_input(root, cams, depth=True, fmt="colmap"):
+    for name, cam in cams.items():
+        write_image(root / "images" / name, np.random.default_rng(0).random((cam.height, cam.width, 3)))
+        if depth:
+            write_depth_png(root / "depth" / name, np.full((cam.height // 2, cam.width // 2), 2.0))
+    if fmt == "colmap":
+        write_colmap_model(cams, root / "sparse" / "0")
+    elif fmt == "json":
+        (root / "cameras.json").write_text(cameras_to_json(cams))
+    (root / "gt").mkdir(exist_ok=True)
+    write_image(root / "gt" / "not_a_view.png", np.zeros((4, 4, 3)))
+
+
+@pytest.mark.parametrize("fmt", ["colmap", "json", "images"])
+def test_read_input_layouts(tmp_path, fmt):
+    cams = _cams()
+    _write_input(tmp_path, cams, fmt=fmt)
+    scene = read_input(tmp_path)
+    assert scene.names == sorted(cams)
+    assert scene.source == {"colmap": "colmap", "json": "cameras.json", "images": "images"}[fmt]
+    assert all(v.depth == f"input/depth/{v.name}" for v in scene.views)
+    if fmt == "images":
+        assert scene.posed_views == []
+    else:
+        for v in scene.views:
+            np.testing.assert_allclose(v.camera.cam_from_world, cams[v.name].cam_from_world, atol=1e-9)
+    again = Scene.from_json(scene.to_json())
+    assert again.names == scene.names and again.source == scene.source
+
+
+def test_depth_png_is_millimetres(tmp_path):
+    d = np.array([[0.0, 1.2345, np.nan], [70.0, -1.0, 2.0]])
+    write_depth_png(tmp_path / "d.png", d)
+    back = read_depth_png(tmp_path / "d.png")
+    np.testing.assert_allclose(back, [[0, 1.234, 0], [0, 0, 2.0]], atol=1e-6)  # 1 mm steps; invalid -> 0
+
+
+def test_reflectors_parse_and_validate(tmp_path):
+    r = Reflector.from_dict({"name": "m", "plane": [0, 2, 0, -4], "beta": 0.5}, "r")
+    np.testing.assert_allclose(r.plane, [0, 1, 0, -2])
+    for bad, msg in [({"plane": [0, 0, 0, 1]}, "normal is zero"), ({"plane": [1, 2]}, "4 finite"),
+                     ({"plane": [0, 0, 1, 0], "beta": 2}, "beta"), ({}, "needs a 'plane'")]:
+        with pytest.raises(InputError, match=msg):
+            Reflector.from_dict(bad, "reflectors.json: reflector 0")
+    cams = _cams()
+    _write_input(tmp_path, cams)
+    (tmp_path / "reflectors.json").write_text(json.dumps({"reflectors": [{"plane": [1, 0, 0, 1]}]}))
+    assert len(read_input(tmp_path).reflectors) == 1
+    (tmp_path / "reflectors.json").write_text("{not json")
+    with pytest.raises(InputError, match="reflectors.json: cannot read reflectors"):
+        read_input(tmp_path)
+
+
+def test_colmap_model_naming_unknown_image_is_an_error(tmp_path):
+    cams = _cams()
+    _write_input(tmp_path, cams)
+    (tmp_path / "images" / "img_00.png").unlink()
+    with pytest.raises(InputError, match="refers to images not in"):
+        read_input(tmp_path)
