@@ -27,7 +27,7 @@ $(STAMP): pyproject.toml requirements.lock scripts/install_system_deps.sh
 	touch $(STAMP)
 
 demo: install
-	$(BIN)/ibr run $(OUT)/demo --input sample_data --jobs $(JOBS)
+	$(BIN)/ibr run $(OUT)/demo --input sample_data/mirror_room --jobs $(JOBS)
 	$(BIN)/ibr status $(OUT)/demo
 
 test: install

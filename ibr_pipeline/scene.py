@@ -142,7 +142,7 @@ class Camera:
         eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
         z = target - eye
         z /= np.linalg.norm(z)
-        x = np.cross(z, -up)
+        x = np.cross(z, up)  # image right; then y = z × x points down the image (OpenCV)
         if np.linalg.norm(x) < 1e-9:
             raise ValueError("look_at: viewing direction is parallel to up")
         x /= np.linalg.norm(x)

@@ -34,6 +34,8 @@ from .errors import InputError
 CONFIG_FILE = "ibr.toml"
 INPUT_PREFIX = "input/"
 _TMP_MARK = ".ibrtmp-"
+_UMASK = os.umask(0)  # read the process umask once (os.umask can only be read by setting it)
+os.umask(_UMASK)
 
 
 def view_key(name: str) -> str:
@@ -167,6 +169,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}{_TMP_MARK}", suffix=target.suffix,
                                dir=target.parent)
     os.close(fd)
+    os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; outputs get ordinary permissions
     try:
         yield Path(tmp)
         os.replace(tmp, target)

@@ -1,7 +1,6 @@
 """The same per-view tasks give byte-identical outputs in-process, on a process pool and on Dask."""
 import pytest
-from conftest import make_toy_workspace
-from toy_stages import STAGES
+from toy_stages import STAGES, make_toy_workspace
 
 from ibr_pipeline.executors import DaskExecutor, LocalExecutor
 from ibr_pipeline.pipeline import load_configs, run

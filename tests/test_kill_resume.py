@@ -7,8 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from conftest import make_toy_workspace
-from toy_stages import STAGES
+from toy_stages import STAGES, make_toy_workspace
 
 from ibr_pipeline.pipeline import load_configs, run, status
 from ibr_pipeline.workspace import Workspace

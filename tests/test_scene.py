@@ -31,6 +31,29 @@ def test_project_unproject_round_trip():
     np.testing.assert_allclose(cam.world_from_cam @ cam.cam_from_world, np.eye(4), atol=1e-12)
 
 
+def test_look_at_is_upright():
+    K = Camera.intrinsics_from_fov(64, 48, 60)
+    cam = Camera.look_at([0, 0, 1], [0, 3, 1], [0, 0, 1], K, 64, 48)  # z-up world, looking along +y
+    (u_c, v_c), = cam.project(np.array([[0, 3, 1.0]]))[0]
+    (u_up, v_up), = cam.project(np.array([[0, 3, 1.5]]))[0]  # above the target: higher in the image
+    (u_r, v_r), = cam.project(np.array([[0.5, 3, 1.0]]))[0]  # +x is to the right when facing +y
+    assert v_up < v_c and abs(u_up - u_c) < 1e-9
+    assert u_r > u_c and abs(v_r - v_c) < 1e-9
+
+
+def test_outputs_are_readable_by_others(tmp_path):
+    import os
+    import stat
+
+    from ibr_pipeline.workspace import atomic_path
+    with atomic_path(tmp_path / "x.txt") as tmp:
+        tmp.write_text("x")
+    mode = stat.S_IMODE(os.stat(tmp_path / "x.txt").st_mode)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert mode == 0o666 & ~umask
+
+
 def test_resized_keeps_pixel_centres():
     cam = next(iter(_cams().values()))
     half = cam.resized(32, 24)

@@ -11,6 +11,7 @@ import os
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 from ibr_pipeline.config import StageConfig, param
 from ibr_pipeline.runner import Stage, StageContext
@@ -59,6 +60,18 @@ def upper_run(ctx: StageContext, view: str) -> None:
 
 def missing_output_run(ctx: StageContext) -> None:
     """A buggy stage: declares an output it never writes."""
+
+
+def make_toy_workspace(root: Path, n_views: int = 6) -> Path:
+    """An input folder with n text 'views' and a workspace pointing at it."""
+    data = root / "input" / "data"
+    data.mkdir(parents=True)
+    for i in range(n_views):
+        (data / f"v{i:02d}.txt").write_text(f"view number {i}\n")
+    ws = root / "ws"
+    ws.mkdir()
+    (ws / "ibr.toml").write_text(f'[input]\npath = "{(root / "input").as_posix()}"\n')
+    return ws
 
 
 STAGES = (

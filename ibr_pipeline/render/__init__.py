@@ -1,0 +1,1 @@
+"""Rendering: ray casting (open3d) and rasterizing."""

@@ -1,0 +1,61 @@
+"""Thin helpers around open3d's `RaycastingScene` (CPU BVH ray casting).
+
+`t_hit` from open3d is the ray parameter: a range in metres only when the direction is a unit
+vector (`camera_rays` returns unit directions). Shadow/visibility tests use unnormalised
+directions with `tfar < 1` so that the segment ends just before its target.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..scene import Camera
+
+
+def build_scene(vertices: np.ndarray, triangles: np.ndarray):
+    """An open3d RaycastingScene over one triangle mesh ((V, 3) float, (F, 3) int)."""
+    import open3d as o3d
+
+    vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+    triangles = np.ascontiguousarray(triangles, dtype=np.uint32)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise ValueError(f"expected (V, 3) vertices and (F, 3) triangles, got "
+                         f"{vertices.shape} and {triangles.shape}")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(triangles))
+    return scene
+
+
+def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """World-space ray origins (H*W, 3) and unit directions (H*W, 3) through pixel centres."""
+    uv = camera.pixel_grid().reshape(-1, 2)
+    d_cam = np.linalg.solve(camera.K, np.c_[uv, np.ones(len(uv))].T).T
+    d_world = d_cam @ camera.R  # R^T d for each row
+    d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)
+    origins = np.broadcast_to(camera.center, d_world.shape).copy()
+    return origins, d_world
+
+
+def cast(scene, origins: np.ndarray, directions: np.ndarray) -> dict[str, np.ndarray]:
+    """Cast (N, 3) rays; returns t_hit (inf on miss), primitive_ids (-1 on miss), primitive_uvs."""
+    import open3d as o3d
+
+    if origins.shape != directions.shape or origins.ndim != 2 or origins.shape[1] != 3:
+        raise ValueError(f"origins and directions must both be (N, 3), got {origins.shape}, "
+                         f"{directions.shape}")
+    rays = np.concatenate([origins, directions], axis=1).astype(np.float32)
+    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    t = ans["t_hit"].numpy().astype(np.float64)
+    prim = ans["primitive_ids"].numpy().astype(np.int64)
+    prim[~np.isfinite(t)] = -1
+    return {"t_hit": t, "primitive_ids": prim, "primitive_uvs": ans["primitive_uvs"].numpy()}
+
+
+def occluded(scene, origins: np.ndarray, targets: np.ndarray, eps: float = 1e-3) -> np.ndarray:
+    """(N,) bool: is the open segment origin -> target blocked by any triangle?"""
+    d = targets - origins
+    rays = np.concatenate([origins, d], axis=1).astype(np.float32)
+    import open3d as o3d
+
+    length = np.linalg.norm(d, axis=1).max() if len(d) else 1.0
+    return scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0,
+                                 tfar=float(1.0 - eps / max(length, 1e-9))).numpy().astype(bool)

@@ -1,0 +1,94 @@
+"""argparse hooks for `ibr synth` and `ibr synth-bench` (registered by ibr_pipeline/cli.py).
+
+Nothing heavy is imported at module level: `ibr --help` must stay fast.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import InputError
+
+SCENE_NAMES = ("mirror_room", "glass_room", "curved", "tiny")
+
+
+def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("name", metavar="NAME", choices=SCENE_NAMES,
+                        help=f"scene to generate: {', '.join(SCENE_NAMES)}")
+    parser.add_argument("out", metavar="OUT", type=Path,
+                        help="output folder (an input folder for `ibr init`; created if missing)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="random seed for furniture, textures and camera wobble (default 0)")
+    parser.add_argument("--width", type=int, default=None,
+                        help="image width in pixels (default 640; 160 for tiny)")
+    parser.add_argument("--height", type=int, default=None,
+                        help="image height in pixels (default 480; 120 for tiny)")
+    parser.add_argument("--views", type=int, default=None,
+                        help="number of capture views on the hand-held path (default 120; 8 for tiny)")
+    parser.add_argument("--test-views", type=int, default=None,
+                        help="held-out test views from a second path (default 15; 2 for tiny)")
+    parser.add_argument("--flythrough", type=int, default=None,
+                        help="frames of the smooth fly-through path (default 48; 4 for tiny)")
+    parser.add_argument("--depth-scale", type=float, default=0.5,
+                        help="RGB-D sensor resolution relative to colour, same aspect (default 0.5)")
+    parser.add_argument("--no-gt-layers", action="store_true",
+                        help="skip the Xu Eq. 3 layers gt/I0, gt/I1, gt/beta")
+    parser.add_argument("--raytree-pairs", type=int, default=1,
+                        help="number of Lochmann ray-tree camera pairs in gt/raytree (default 1)")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="worker processes (default: min(2, CPU count))")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _options(args: argparse.Namespace):
+    from .generate import SynthOptions
+
+    return SynthOptions(name=args.name, seed=args.seed, width=args.width, height=args.height,
+                        views=args.views, test_views=args.test_views, flythrough=args.flythrough,
+                        depth_scale=args.depth_scale, gt_layers=not args.no_gt_layers,
+                        raytree_pairs=args.raytree_pairs, jobs=args.jobs,
+                        progress=not args.no_progress)
+
+
+def synth_main(args: argparse.Namespace) -> int:
+    if getattr(args, "name", None) not in SCENE_NAMES:
+        raise InputError(f"NAME: unknown scene {getattr(args, 'name', None)!r} "
+                         f"(choose from {', '.join(SCENE_NAMES)})")
+    from .generate import generate
+
+    opts = _options(args)
+    opts.validate()  # before touching OUT
+    generate(opts, Path(args.out))
+    return 0
+
+
+def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("names", metavar="NAME", nargs="*", default=["tiny", "mirror_room"],
+                        help="scenes to time (default: tiny mirror_room); each at its default "
+                             "size unless --width/--height/--views are given")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="runs per scene; the median is reported (default 3)")
+    parser.add_argument("--width", type=int, default=None, help="override the image width")
+    parser.add_argument("--height", type=int, default=None, help="override the image height")
+    parser.add_argument("--views", type=int, default=None, help="override the number of views")
+    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="worker processes (default: min(2, CPU count))")
+    parser.add_argument("--output", type=Path, default=Path("synth_bench.jsonl"),
+                        help="JSON-lines file the results are appended to (default synth_bench.jsonl)")
+    parser.add_argument("--workdir", type=Path, default=None,
+                        help="where scenes are generated (default: a temporary folder, removed)")
+
+
+def bench_main(args: argparse.Namespace) -> int:
+    from .bench import run_bench
+
+    if args.repeats < 1:
+        raise InputError(f"--repeats must be >= 1, got {args.repeats}")
+    bad = [n for n in args.names if n not in SCENE_NAMES]
+    if bad:
+        raise InputError(f"NAME: unknown scene(s) {bad} (choose from {', '.join(SCENE_NAMES)})")
+    run_bench(args.names, repeats=args.repeats, width=args.width, height=args.height,
+              views=args.views, seed=args.seed, jobs=args.jobs, output=args.output,
+              workdir=args.workdir)
+    return 0
