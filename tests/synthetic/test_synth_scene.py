@@ -21,9 +21,9 @@ def _gray8(path: Path) -> np.ndarray:
     return np.asarray(Image.open(path), dtype=np.float64) / 255.0
 
 
-def test_tiny_is_fast_and_complete(tiny_scene):
-    root, summary, seconds = tiny_scene
-    assert seconds <= 10.0, f"tiny took {seconds:.1f} s"
+def test_tiny_is_complete(tiny_scene):
+    # (its speed is measured by `ibr synth-bench`, not asserted here: see docs/BENCHMARKS.md)
+    root, summary, _ = tiny_scene
     scene = read_input(root)
     assert scene.source == "colmap" and len(scene.views) == 8
     assert all(v.camera is not None and v.depth is not None for v in scene.views)
