@@ -16,7 +16,7 @@ from .errors import ConfigError, InputError
 from .executors import Executor, LocalExecutor
 from .runner import (HashCache, Stage, StageContext, StagePlan, error_line, expand, format_traceback,
                      make_record, output_record, plan_stage, run_view_task, write_record)
-from .workspace import Workspace, atomic_path
+from .workspace import Workspace, atomic_path, view_key
 
 log = logging.getLogger("ibr_pipeline")
 
@@ -152,7 +152,6 @@ def _run_views(stage: Stage, ctx: StageContext, plan: StagePlan, executor: Execu
 
 
 def _save_traceback(ws: Workspace, stage: str, view: str | None, exc: BaseException) -> None:
-    from .workspace import view_key
     path = ws.root / ".ibr" / "logs" / stage / f"{view_key(view) if view else 'stage'}.txt"
     with atomic_path(path) as tmp:
         tmp.write_text(format_traceback(exc))

@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Callable, Sequence, Union
 
 from .config import StageConfig, diff_configs
-from .errors import InputError
 from .workspace import Workspace, atomic_path
 
 log = logging.getLogger("ibr_pipeline.runner")

@@ -14,13 +14,12 @@ primary-level view-independent factors (kr, tint) and the view-dependent Fresnel
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..render import raycast
 from ..scene import Camera
-from .materials import (FRESNEL_DIELECTRIC, FRESNEL_NONE, FRESNEL_PANE, fresnel_dielectric,
+from .materials import (FRESNEL_NONE, fresnel_dielectric,
                         fresnel_pane, reflect, refract)
 from .scenes import World
 

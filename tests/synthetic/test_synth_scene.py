@@ -5,7 +5,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from ibr_pipeline.io.images import read_depth_png, read_image
 from ibr_pipeline.scene import cameras_from_json, read_input
