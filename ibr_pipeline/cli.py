@@ -27,6 +27,16 @@ configs: each stage reads the table [stage] of WS/ibr.toml; `--set stage.field=v
 exit codes: 0 ok, 1 a stage failed, 2 bad input."""
 
 
+# Commands beyond the stages live next to their code. Each module defines `register(sub)`, which
+# adds its subparsers and sets `func` (args -> exit code) on them; it must import nothing heavy at
+# module level, so `ibr --help` stays fast.
+COMMAND_MODULES = (
+    "ibr_pipeline.render.cli",    # ibr render          (issue #7)
+    "ibr_pipeline.raytree.cli",   # ibr warp            (issue #9)
+    "ibr_pipeline.bench.cli",     # ibr bench / report  (issue #10)
+)
+
+
 def _stages():
     from .stages import STAGES
     return STAGES
@@ -91,6 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth_cli.add_synth_arguments(p)
     p = sub.add_parser("synth-bench", help="benchmark synthetic scene generation")
     synth_cli.add_bench_arguments(p)
+    import importlib
+    for mod in COMMAND_MODULES:
+        importlib.import_module(mod).register(sub)
     return parser
 
 
@@ -219,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "synth-bench":
             from .synthetic import cli as synth_cli
             return synth_cli.bench_main(args)
+        if getattr(args, "func", None) is not None:
+            return args.func(args)
         cfg = {k[5:]: v for k, v in vars(args).items() if k.startswith("cfg__") and v is not None}
         return _cmd_run(args, only=args.command, overrides={args.command: cfg})
     except InputError as e:

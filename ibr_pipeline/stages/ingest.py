@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from ..config import StageConfig, param
 from ..errors import InputError
-from ..runner import StageContext
+from ..runner import Stage, StageContext
 from ..scene import Scene, input_files, read_input
 
 log = logging.getLogger("ibr_pipeline.ingest")
@@ -76,3 +76,8 @@ def run(ctx: StageContext) -> None:
              len(scene.reflectors))
     if posed == 0:
         log.info("ingest: no camera poses given: the global_mesh stage will run SfM")
+
+
+STAGE = Stage(name="ingest", help="read the input folder, check every file, write scene.json",
+              config=IngestConfig, version="1", run=run, needs_scene=False,
+              inputs=inputs, outputs=("scene.json",))

@@ -1,0 +1,1 @@
+"""Benchmarks and reports across stages (issue #10)."""

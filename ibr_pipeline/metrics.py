@@ -1,0 +1,106 @@
+"""Image-quality metrics: PSNR, SSIM, FLIP, each optionally restricted to a mask.
+
+Inputs are float images in [0, 1], (H, W, 3) or (H, W), in the *linear* values we store
+(scene.py conventions). PSNR and SSIM are computed on those values as stored. FLIP (Andersson et al.
+2020, NVIDIA's `flip-evaluator` binding, LDR mode) models a viewer, so it is given the images as
+linear and converts them to sRGB for display itself (`inputsRGB=False`).
+
+SSIM is Wang et al. 2004 with the standard constants (Gaussian window sigma 1.5, K1 0.01, K2 0.03,
+data range 1), computed per channel and averaged; the masked variant averages the SSIM map over the
+mask. Every function returns a plain float; an empty mask gives NaN (no pixels, no score).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+
+def _check(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape or a.ndim not in (2, 3):
+        raise ValueError(f"images must have the same (H,W[,C]) shape, got {a.shape} and {b.shape}")
+    if mask is not None and np.asarray(mask).shape != a.shape[:2]:
+        raise ValueError(f"mask shape {np.asarray(mask).shape} does not match image {a.shape[:2]}")
+    return a, b
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Peak signal-to-noise ratio in dB (peak 1.0); over `mask` pixels when given."""
+    a, b = _check(a, b, mask)
+    err = (a - b) ** 2
+    if err.ndim == 3:
+        err = err.mean(axis=2)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if not m.any():
+            return float("nan")
+        err = err[m]
+    mse = float(err.mean())
+    return float("inf") if mse == 0 else float(10.0 * np.log10(1.0 / mse))
+
+
+def ssim_map(a: np.ndarray, b: np.ndarray, sigma: float = 1.5) -> np.ndarray:
+    """Per-pixel SSIM (H, W), averaged over channels."""
+    a, b = _check(a, b, None)
+    if a.ndim == 2:
+        a, b = a[..., None], b[..., None]
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    out = np.zeros(a.shape[:2])
+    for c in range(a.shape[2]):
+        x, y = a[..., c], b[..., c]
+        f = lambda z: gaussian_filter(z, sigma, truncate=3.5, mode="reflect")  # noqa: E731
+        mx, my = f(x), f(y)
+        vx, vy, cxy = f(x * x) - mx * mx, f(y * y) - my * my, f(x * y) - mx * my
+        out += ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    return out / a.shape[2]
+
+
+def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean SSIM; over `mask` pixels when given."""
+    _check(a, b, mask)
+    m = ssim_map(a, b)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        return float(m[mask].mean()) if mask.any() else float("nan")
+    return float(m.mean())
+
+
+def flip_map(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
+    """Per-pixel LDR-FLIP error (H, W) in [0, 1]; lower is better."""
+    import flip_evaluator
+    a, b = _check(reference, test, None)
+    if a.ndim == 2:
+        a, b = np.repeat(a[..., None], 3, 2), np.repeat(b[..., None], 3, 2)
+    a = np.ascontiguousarray(np.clip(a, 0, 1), dtype=np.float32)
+    b = np.ascontiguousarray(np.clip(b, 0, 1), dtype=np.float32)
+    err, _, _ = flip_evaluator.evaluate(a, b, "LDR", inputsRGB=False, applyMagma=False,
+                                        computeMeanError=False)
+    err = np.asarray(err, dtype=np.float64)
+    return err[..., 0] if err.ndim == 3 else err
+
+
+def flip(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean LDR-FLIP error; over `mask` pixels when given."""
+    _check(reference, test, mask)
+    m = flip_map(reference, test)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        return float(m[mask].mean()) if mask.any() else float("nan")
+    return float(m.mean())
+
+
+def all_metrics(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None,
+                with_flip: bool = True) -> dict[str, float]:
+    """{'psnr', 'ssim', 'flip'} over the whole image, and '<name>_mask' over `mask` if given."""
+    out = {"psnr": psnr(reference, test), "ssim": ssim(reference, test)}
+    fm = flip_map(reference, test) if with_flip else None
+    if fm is not None:
+        out["flip"] = float(fm.mean())
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        out["psnr_mask"] = psnr(reference, test, mask)
+        out["ssim_mask"] = ssim(reference, test, mask)
+        if fm is not None:
+            out["flip_mask"] = float(fm[mask].mean()) if mask.any() else float("nan")
+    return out
