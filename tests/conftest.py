@@ -1,5 +1,6 @@
 import os
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -16,3 +17,21 @@ from toy_stages import make_toy_workspace  # noqa: E402  (needs the path above)
 @pytest.fixture
 def toy_ws(tmp_path):
     return make_toy_workspace(tmp_path)
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    """The `tiny` synthetic scene (8 views, 160x120, a mirror) generated once per session:
+    (folder, summary, seconds taken). Read-only for tests: copy what you modify."""
+    from ibr_pipeline.synthetic.generate import SynthOptions, generate
+
+    out = tmp_path_factory.mktemp("synth") / "tiny"
+    t0 = time.perf_counter()
+    summary = generate(SynthOptions("tiny", seed=3, progress=False), out)
+    return out, summary, time.perf_counter() - t0
+
+
+@pytest.fixture(scope="session")
+def sample_scene():
+    """sample_data/mirror_room (24 views, 320x240, with depth/ and gt/). Read-only."""
+    return Path(__file__).parent.parent / "sample_data" / "mirror_room"
