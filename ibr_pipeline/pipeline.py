@@ -202,7 +202,23 @@ def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
                 break
     finally:
         hashes.save()
+        _log_run(ws, results)
     return results
+
+
+def _log_run(ws: Workspace, results: Sequence[StageResult]) -> None:
+    """Append this run's per-stage results to WS/.ibr/runs.jsonl (read by `ibr report`)."""
+    if not results:
+        return
+    import json
+    entry = {"finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+             "stages": [{"stage": r.name, "result": r.result, "seconds": round(r.seconds, 3),
+                         "views_run": r.views_run, "views_failed": r.views_failed,
+                         "views_total": r.views_total} for r in results]}
+    path = ws.root / ".ibr" / "runs.jsonl"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        f.write(json.dumps(entry) + "\n")
 
 
 def timing_table(results: Sequence[StageResult]) -> str:

@@ -2,8 +2,9 @@
 # Install the system libraries ibr_pipeline needs, when they are missing (Debian/Ubuntu).
 #   EGL for headless moderngl rendering: libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1
 #   open3d: libusb-1.0-0
+#   report test (headless browser screenshot of `ibr report`): chromium-headless-shell
 set -euo pipefail
-pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libusb-1.0-0)
+pkgs=(libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libusb-1.0-0 chromium-headless-shell fonts-dejavu-core)
 missing=()
 if ! command -v dpkg-query >/dev/null 2>&1; then
   echo "install_system_deps: not a Debian/Ubuntu system; make sure these are installed: ${pkgs[*]}" >&2

@@ -1,0 +1,154 @@
+"""Charts and tables from `ibr bench` results (results.jsonl): Pareto fronts and stability curves.
+
+Only recorded values are plotted. The latest line per (scene, setting) wins, so rerunning one
+setting updates its point. Quality axis: held-out PSNR (dB) from the evaluate stage.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+QUALITY = ("psnr", "PSNR on held-out views (dB)")
+
+
+def load(results: Path) -> list[dict]:
+    latest: dict[tuple, dict] = {}
+    for line in results.read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            latest[(r.get("scene"), r.get("setting"))] = r
+    return list(latest.values())
+
+
+def quality(r: dict, key: str = "psnr"):
+    v = (r.get("metrics") or {}).get(key)
+    return v if isinstance(v, (int, float)) else None
+
+
+def pareto(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of points not dominated by another (lower x better, higher y better), by x."""
+    idx = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], -float("inf")
+    for i in idx:
+        if points[i][1] > best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def _scatter(rows: list[dict], xkey, xlabel: str, path: Path, logx: bool = False) -> Path | None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pts = [(xkey(r), quality(r), r) for r in rows if r.get("group") in ("grid", "baseline")]
+    pts = [(x, y, r) for x, y, r in pts if x is not None and y is not None]
+    if not pts:
+        return None
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=110)
+    for x, y, r in pts:
+        marker = "s" if r["group"] == "baseline" else "o"
+        ax.scatter([x], [y], marker=marker, s=36, color="C1" if r["group"] == "baseline" else "C0")
+        ax.annotate(r["setting"], (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+    front = pareto([(x, y) for x, y, _ in pts])
+    ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "--", color="C2",
+            label="Pareto front")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(QUALITY[1])
+    if logx:
+        ax.set_xscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title(f"{rows[0].get('scene')}: quality vs {xlabel.split(' (')[0]}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _stability(rows: list[dict], out: Path) -> Path | None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    default = next((quality(r) for r in rows if r.get("setting") == "default"), None)
+    kinds: dict[str, list] = {}
+    for r in rows:
+        if r.get("group") == "stability" and r.get("degrade"):
+            kinds.setdefault(r["degrade"][0], []).append((r["degrade"][1], quality(r)))
+    if not kinds:
+        return None
+    n = len(kinds)
+    fig, axes = plt.subplots(1, n, figsize=(3.0 * n, 3.0), dpi=110, squeeze=False)
+    for ax, (kind, pts) in zip(axes[0], sorted(kinds.items())):
+        pts = sorted(pts)
+        xs = [0.0] + [p[0] for p in pts] if default is not None else [p[0] for p in pts]
+        ys = [default] + [p[1] for p in pts] if default is not None else [p[1] for p in pts]
+        ax.plot(xs, [y if y is not None else float("nan") for y in ys], "o-")
+        for x, y in zip(xs, ys):
+            if y is None:
+                ax.axvline(x, color="r", alpha=0.4)  # crashed / no metrics
+        ax.set_title(kind, fontsize=9)
+        ax.set_xlabel("degradation", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel(QUALITY[1], fontsize=8)
+    fig.tight_layout()
+    path = out / "stability.png"
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _fmt(v, nd=2):
+    return "-" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
+
+
+def tables(rows: list[dict]) -> tuple[str, str]:
+    head = ("| setting | group | W×H | views | preprocess s | render ms | PSNR | SSIM | FLIP | "
+            "PSNR in reflectors | MB/view |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    lines = [head]
+    for r in rows:
+        if r.get("group") == "stability":
+            continue
+        m = r.get("metrics") or {}
+        lines.append(f"| {r['setting']} | {r.get('group')} | {r.get('width')}×{r.get('height')} | "
+                     f"{r.get('views')} | {_fmt(r.get('preprocess_s'), 1)} | "
+                     f"{_fmt(r.get('render_ms'), 1)} | {_fmt(m.get('psnr'))} | "
+                     f"{_fmt(m.get('ssim'), 3)} | {_fmt(m.get('flip'), 3)} | "
+                     f"{_fmt(m.get('psnr_mask'))} | {_fmt(r.get('mb_per_view'), 3)} |")
+    default = next((quality(r) for r in rows if r.get("setting") == "default"), None)
+    st = ["| degradation | amount | what the pipeline did | PSNR | cost vs default (dB) |",
+          "|---|---|---|---|---|"]
+    for r in rows:
+        if r.get("group") != "stability":
+            continue
+        q = quality(r)
+        if r.get("crashed"):
+            did = f"crashed: {r['crashed'][:80]}"
+        else:
+            bad = [f"{k}: {v}" for k, v in (r.get("stage_results") or {}).items()
+                   if v not in ("ran", "up to date")]
+            did = "; ".join((r.get("fallbacks") or []) + bad) or "completed normally"
+        cost = None if q is None or default is None else q - default
+        st.append(f"| {r['degrade'][0]} | {r['degrade'][1]} | {did} | {_fmt(q)} | {_fmt(cost)} |")
+    return "\n".join(lines), "\n".join(st) if len(st) > 2 else ""
+
+
+def draw_all(results: Path, out: Path) -> list[Path]:
+    rows = load(results)
+    written = [
+        _scatter(rows, lambda r: r.get("render_ms"), "render time (ms/frame)",
+                 out / "quality_vs_render_ms.png"),
+        _scatter(rows, lambda r: r.get("preprocess_s"), "preprocessing time (s)",
+                 out / "quality_vs_preprocess_s.png"),
+        _scatter(rows, lambda r: r.get("mb_per_view"), "model size (MB per view)",
+                 out / "quality_vs_model_mb.png"),
+        _stability(rows, out),
+    ]
+    grid, stab = tables(rows)
+    (out / "settings.md").write_text("### Settings\n\n" + grid + "\n")
+    written.append(out / "settings.md")
+    if stab:
+        (out / "stability.md").write_text("### Stability\n\n" + stab + "\n")
+        written.append(out / "stability.md")
+    return [p for p in written if p is not None]
