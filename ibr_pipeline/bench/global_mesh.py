@@ -1,0 +1,155 @@
+"""Benchmark of stage `global_mesh` (issue #4) against synthetic ground truth.
+
+    python -m ibr_pipeline.bench.global_mesh [--scene tiny|mirror_room|sample|PATH] [--views 30]
+        [--parts rgbd,mvs,sfm,mvs_speed] [--repeats 3] [--device cpu|cuda] [--output FILE.json]
+
+* rgbd: poses given, TSDF fusion of the depth frames with reflectors.json: F-score at 5 cm vs
+  gt/mesh.ply (mirror-world points excluded from precision and reported separately), fusion ms/frame.
+* mvs: poses given, no depth (dense=mvs): the same F-score, MVS s/view.
+* sfm: forced SfM (sequential matching), Sim(3)-aligned pose errors, registration rate, s/image.
+* mvs_speed: one plane sweep at the scene's full image size with 4 sources, median of repeats.
+`mirror_room` is generated at 640x480 with --views capture views (default 30, ~1 min).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _scene(name: str, views: int, work: Path) -> Path:
+    if name == "sample":
+        return Path(__file__).resolve().parents[2] / "sample_data" / "mirror_room"
+    if name not in ("tiny", "mirror_room"):
+        return Path(name)
+    from ..synthetic.generate import SynthOptions, generate
+    out = work / name
+    opts = SynthOptions(name, seed=0, views=None if name == "tiny" else views, test_views=1,
+                        flythrough=2, jobs=1, progress=False)
+    generate(opts, out)
+    return out
+
+
+def _run_stage(scene: Path, ws: Path, sets: list[str]) -> dict:
+    from ..cli import main as cli
+    args = ["run", str(ws), "--input", str(scene), "--until", "global_mesh"]
+    for s in sets + ["global_mesh.progress=false"]:
+        args += ["--set", s]
+    if cli(args) != 0:
+        raise RuntimeError(f"global_mesh failed on {scene}")
+    return json.loads((ws / "global" / "report.json").read_text())
+
+
+def _fscore(scene: Path, ws: Path) -> dict:
+    from ..geometry.fusion import mirror_world_points
+    from ..geometry.mesh_metrics import distance_to_mesh, fscore, observed_points
+    from ..io.mesh import read_ply
+    from ..scene import read_input
+    sc = read_input(scene)
+    cams = [v.camera for v in sc.views]
+    depths = [np.load(scene / "gt" / "geom" / (Path(v.name).stem + ".npz"))["depth"] for v in sc.views]
+    gt, mesh = read_ply(scene / "gt" / "mesh.ply"), read_ply(ws / "global" / "mesh.ply")
+    excl = lambda p: mirror_world_points(p, sc.reflectors, cams)  # noqa: E731
+    res = fscore(mesh.vertices, mesh.faces, gt.vertices, gt.faces, observed_points(cams, depths),
+                 tau=0.05, exclude=excl)
+    raw = fscore(mesh.vertices, mesh.faces, gt.vertices, gt.faces, observed_points(cams, depths), tau=0.05)
+    res["fscore_without_exclusion"] = raw["fscore"]
+    mw = excl(mesh.vertices)
+    far = distance_to_mesh(mesh.vertices[mw], gt.vertices, gt.faces) > 0.05 if mw.any() else mw[mw]
+    res["mirror_world_vertex_fraction"] = float(far.sum() / max(len(mesh.vertices), 1))
+    return res
+
+
+def bench_mvs_speed(scene: Path, repeats: int, device: str) -> dict:
+    from ..geometry.mvs import plane_sweep, select_sources
+    from ..io.images import read_image
+    from ..scene import read_input
+    sc = read_input(scene)
+    cams = {v.name: v.camera for v in sc.views}
+    ref = sc.names[len(sc.names) // 2]
+    src = select_sources(cams[ref], cams, k=4)
+    imgs = {n: read_image(scene / "images" / n) for n in [ref] + src}
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        plane_sweep(imgs[ref], cams[ref], [imgs[s] for s in src], [cams[s] for s in src], 0.3, 8.0,
+                    device=device)
+        if device == "cuda":
+            import torch
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    return {"size": list(cams[ref].size), "sources": len(src), "s_per_view_median": statistics.median(times),
+            "runs": times, "device": device}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.global_mesh", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="tiny", help="tiny, mirror_room (generated), sample, or a folder")
+    ap.add_argument("--views", type=int, default=30, help="capture views when generating mirror_room")
+    ap.add_argument("--parts", default="rgbd,mvs,sfm,mvs_speed")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    ap.add_argument("--mvs-scale", type=float, default=None, help="global_mesh.mvs_scale (default: "
+                    "1.0 for tiny, else the stage default)")
+    ap.add_argument("--output", default="bench_global_mesh.json")
+    args = ap.parse_args(argv)
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    out: dict = {"scene": args.scene, "machine_note": "2 shared cores unless stated", "results": {}}
+    with tempfile.TemporaryDirectory(prefix="bench-gm-") as tmp:
+        tmp = Path(tmp)
+        scene = _scene(args.scene, args.views, tmp)
+        mvs_scale = args.mvs_scale or (1.0 if args.scene == "tiny" else None)
+        for part in parts:
+            t0 = time.perf_counter()
+            if part == "rgbd":
+                runs = []
+                for i in range(args.repeats):
+                    rep = _run_stage(scene, tmp / f"rgbd{i}", [])
+                    runs.append(rep["timings"]["fusion_ms_per_frame"])
+                res = {"fusion_ms_per_frame_median": statistics.median(runs), "runs": runs,
+                       "stage_total_s": rep["timings"]["total_s"], **_fscore(scene, tmp / f"rgbd{i}")}
+            elif part == "mvs":
+                sets = ["global_mesh.dense=mvs", f"global_mesh.device={args.device}"]
+                if mvs_scale:
+                    sets.append(f"global_mesh.mvs_scale={mvs_scale}")
+                rep = _run_stage(scene, tmp / "mvs", sets)
+                res = {"mvs_s_per_view": rep["timings"]["mvs_s_per_view"],
+                       "mvs_valid_fraction": rep.get("mvs_valid_fraction"), **_fscore(scene, tmp / "mvs")}
+            elif part == "sfm":
+                from ..geometry.align import pose_errors
+                from ..scene import cameras_from_json, read_input
+                rep = _run_stage(scene, tmp / "sfm", ["global_mesh.force_sfm=true",
+                                                      "global_mesh.matching=sequential"])
+                truth = {v.name: v.camera for v in read_input(scene).views}
+                est = cameras_from_json(tmp / "sfm" / "global" / "cameras.json")
+                lo, hi = np.array([0, 0, 0]), np.array([5, 4, 2.7])  # room box (docs/SYNTHETIC.md)
+                diag = float(np.linalg.norm(hi - lo))
+                err = pose_errors(est, truth)
+                res = {"registered": len(est), "views": len(truth),
+                       "registration_rate": len(est) / len(truth),
+                       "sfm_s_per_image": rep["timings"]["poses_s"] / len(truth),
+                       "reprojection_error_px": rep["reprojection_error_px"], "alignment": rep.get("alignment"),
+                       "pose_errors": err,
+                       "center_error_pct_of_room_diagonal": 100 * err["center_m"]["median"] / diag}
+            elif part == "mvs_speed":
+                res = bench_mvs_speed(scene, args.repeats, args.device)
+            else:
+                print(f"unknown part {part!r}", file=sys.stderr)
+                return 2
+            res["wall_s"] = time.perf_counter() - t0
+            out["results"][part] = res
+            print(part, json.dumps(res, indent=1, default=float), flush=True)
+    Path(args.output).write_text(json.dumps(out, indent=1, default=float))
+    print(f"wrote {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""Structure from motion with pycolmap (Xu et al. §4.1 computes poses with RealityCapture; we use
+COLMAP: Schönberger & Frahm 2016). SIFT extraction (ALIKED aborts the process, DESIGN.md), sequential
+or exhaustive matching, incremental mapping; known intrinsics are fixed when the input gives them.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from ..scene import Camera
+
+log = logging.getLogger("ibr_pipeline.sfm")
+
+
+@dataclass
+class SfMResult:
+    cameras: dict[str, Camera]      # registered views, our conventions, SfM frame and units
+    reconstruction: object          # the pycolmap.Reconstruction (largest model)
+    stats: dict
+
+
+def _camera_from_image(image) -> Camera:
+    from ..io.colmap import _camera_K
+    T = np.eye(4)
+    T[:3, :] = image.cam_from_world().matrix()
+    cam = image.camera
+    return Camera(_camera_K(cam), T, cam.width, cam.height)
+
+
+def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str = "sequential",
+            intrinsics: Camera | None = None, overlap: int = 10, threads: int = 1,
+            max_image_size: int = 3200) -> SfMResult:
+    """Run SIFT + matching + incremental mapping on `names` (paths relative to `image_dir`).
+
+    intrinsics: one Camera whose K is shared by all images and kept fixed (PINHOLE); None lets
+    COLMAP estimate a SIMPLE_PINHOLE focal length per single shared camera. Returns the largest
+    reconstruction; work_dir receives database.db and the mapper's models.
+    """
+    import pycolmap
+
+    if matching not in ("sequential", "exhaustive"):
+        raise ValueError(f"matching must be 'sequential' or 'exhaustive', got {matching!r}")
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db = work_dir / "database.db"
+    if db.exists():
+        db.unlink()
+    stats: dict = {"images": len(names), "matching": matching}
+    reader = pycolmap.ImageReaderOptions()
+    if intrinsics is not None:
+        K = intrinsics.K
+        reader.camera_model = "PINHOLE"
+        # COLMAP's pixel-centre convention is (0.5, 0.5) (scene.py)
+        reader.camera_params = f"{K[0, 0]},{K[1, 1]},{K[0, 2] + 0.5},{K[1, 2] + 0.5}"
+    else:
+        reader.camera_model = "SIMPLE_PINHOLE"
+    extract = pycolmap.FeatureExtractionOptions()
+    extract.num_threads = threads
+    extract.max_image_size = max_image_size
+    extract.use_gpu = False
+    t0 = time.perf_counter()
+    pycolmap.extract_features(db, image_dir, image_names=list(names),
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extract, device=pycolmap.Device.cpu)
+    stats["extract_s"] = time.perf_counter() - t0
+    mopt = pycolmap.FeatureMatchingOptions()
+    mopt.num_threads = threads
+    mopt.use_gpu = False
+    t0 = time.perf_counter()
+    if matching == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = overlap
+        pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pairing,
+                                  device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
+    stats["match_s"] = time.perf_counter() - t0
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = threads
+    if intrinsics is not None:
+        opts.ba_refine_focal_length = False
+        opts.ba_refine_principal_point = False
+        opts.ba_refine_extra_params = False
+    t0 = time.perf_counter()
+    models = pycolmap.incremental_mapping(db, image_dir, work_dir / "models", opts)
+    stats["map_s"] = time.perf_counter() - t0
+    if not models:
+        raise InputError(f"{image_dir}: structure from motion registered no images "
+                         f"(too little texture or overlap?)")
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    cams = {img.name: _camera_from_image(img) for img in rec.images.values() if img.has_pose}
+    stats.update(registered=len(cams), models=len(models), points=rec.num_points3D(),
+                 reprojection_error_px=float(rec.compute_mean_reprojection_error()))
+    return SfMResult(cams, rec, stats)
+
+
+def keypoint_depths(rec, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """For image `name` of a pycolmap reconstruction: (N, 2) keypoint pixels (our convention) of
+    its triangulated observations and their SfM z-depths (N,)."""
+    image = next(i for i in rec.images.values() if i.name == name)
+    T = image.cam_from_world().matrix()
+    uv, z = [], []
+    for p2d in image.points2D:
+        if not p2d.has_point3D():
+            continue
+        X = rec.points3D[p2d.point3D_id].xyz
+        uv.append(np.asarray(p2d.xy) - 0.5)
+        z.append(float(T[2, :3] @ X + T[2, 3]))
+    return np.array(uv).reshape(-1, 2), np.array(z)
+
+
+def sparse_points(rec) -> np.ndarray:
+    """(N, 3) 3D points of a reconstruction."""
+    pts = [p.xyz for p in rec.points3D.values()]
+    return np.array(pts).reshape(-1, 3)

@@ -1,0 +1,83 @@
+"""geometry/mvs.py against the exact ground truth of sample_data/mirror_room."""
+import numpy as np
+import pytest
+
+from ibr_pipeline.geometry.mvs import geometric_consistency, plane_sweep, select_sources
+from ibr_pipeline.io.images import read_image
+from ibr_pipeline.scene import read_input
+
+MIRROR = 23  # material index of the mirror in gt/scene.json (mirror_room)
+
+
+@pytest.fixture(scope="module")
+def sample(sample_scene):
+    scene = read_input(sample_scene)
+    cams = {v.name: v.camera for v in scene.views}
+    img = {n: read_image(sample_scene / "images" / n) for n in ("0003.png", "0004.png", "0005.png", "0006.png")}
+    gt = {n: np.load(sample_scene / "gt" / "geom" / n.replace(".png", ".npz")) for n in img}
+    return cams, img, gt
+
+
+def test_select_sources_prefers_neighbours(sample):
+    cams = sample[0]
+    src = select_sources(cams["0005.png"], cams, k=3)
+    assert 1 <= len(src) <= 3 and "0005.png" not in src
+    assert set(src) <= {"0002.png", "0003.png", "0004.png", "0006.png", "0007.png", "0008.png"}
+
+
+def test_plane_sweep_matches_ground_truth_depth(sample):
+    cams, img, gt = sample
+    src = ["0004.png", "0006.png", "0003.png"]
+    res = plane_sweep(img["0005.png"], cams["0005.png"], [img[s] for s in src], [cams[s] for s in src],
+                      0.4, 8.0, num_depths=48, max_cost=0.3)
+    d, mat = gt["0005.png"]["depth"], gt["0005.png"]["material"]
+    assert res.depth.shape == d.shape and res.valid.dtype == bool
+    assert np.all(res.depth[~res.valid] == 0)
+    ok = res.valid & (mat != MIRROR)
+    assert ok.mean() > 0.3, f"only {ok.mean():.2f} of the pixels got a depth"
+    err = np.abs(res.depth - d)[ok]
+    # depth precision: most matched pixels within 5 cm (F-score threshold) and median within 2 cm
+    assert np.mean(err < 0.05) > 0.85, np.mean(err < 0.05)
+    assert np.median(err) < 0.02
+
+
+def test_masked_sweep_computes_only_the_mask_and_agrees(sample):
+    cams, img, gt = sample
+    src = ["0004.png", "0006.png"]
+    d = gt["0005.png"]["depth"]
+    lo, hi = d * 0.9, d * 1.1  # per-pixel search band around an initial depth (issue #5's use)
+    mask = np.zeros(d.shape, bool)
+    mask[100:110, 40:280] = True
+    args = (img["0005.png"], cams["0005.png"], [img[s] for s in src], [cams[s] for s in src], lo, hi)
+    full = plane_sweep(*args, num_depths=16, max_cost=2.0)
+    part = plane_sweep(*args, num_depths=16, max_cost=2.0, mask=mask)
+    assert not part.valid[~mask].any() and np.all(part.depth[~mask] == 0)
+    both = part.valid & full.valid
+    assert both.sum() > 0.8 * mask.sum()
+    np.testing.assert_allclose(part.depth[both], full.depth[both], rtol=1e-3)
+    err = np.abs(part.depth - d)[both & (gt["0005.png"]["material"] != MIRROR)]
+    assert np.median(err) < 0.02
+
+
+def test_geometric_consistency_counts_agreeing_views(sample):
+    cams, _, gt = sample
+    names = ["0004.png", "0006.png"]
+    d = gt["0005.png"]["depth"]
+    srcd = [gt[n]["depth"] for n in names]
+    cnt = geometric_consistency(cams["0005.png"], d, [cams[n] for n in names], srcd)
+    assert cnt.shape == d.shape and cnt.max() <= 2
+    assert np.mean(cnt >= 1) > 0.3  # true depths agree wherever the views overlap
+    wrong = geometric_consistency(cams["0005.png"], d * 1.1, [cams[n] for n in names], srcd)
+    assert np.mean(wrong >= 1) < 0.2 * np.mean(cnt >= 1)
+
+
+def test_bad_shapes_raise_value_error(sample):
+    cams, img, _ = sample
+    with pytest.raises(ValueError, match="mask"):
+        plane_sweep(img["0005.png"], cams["0005.png"], [img["0004.png"]], [cams["0004.png"]], 0.5, 5,
+                    mask=np.ones((3, 3), bool))
+    with pytest.raises(ValueError, match="depth_min"):
+        plane_sweep(img["0005.png"], cams["0005.png"], [img["0004.png"]], [cams["0004.png"]],
+                    np.ones((2, 2)), 5)
+    with pytest.raises(ValueError, match="ref_image"):
+        plane_sweep(np.zeros((4, 4, 2)), cams["0005.png"], [img["0004.png"]], [cams["0004.png"]], 0.5, 5)
