@@ -1,0 +1,177 @@
+"""Benchmark of the ray-tree warper (issue #9, Lochmann et al. 2014).
+
+  python -m ibr_pipeline.bench.raytree [--cases mirror,chrome,crystal,pane] [--size 320x240]
+         [--supersample 3] [--move 5 --yaw 3] [--speed-size 1280x720] [--repeats 5]
+         [--device cpu|cuda] [--threads 1] [--out out/bench_raytree] [--skip-speed]
+
+Accuracy: for every case (raytree.scenarios.CASES) a ray tree is traced at an old camera and the
+exact render at the new camera (moved `--move` cm right and yawed `--yaw` deg); PSNR of our warp
+and of the naive diffuse warp (everything warped with the first-hit depth) against it, over all
+pixels except the disoccluded ones (first hit not seen by the old camera) and inside the specular
+regions (first surface reflective / refractive). Writes a Fig. 7-like side-by-side image
+(naive | ground truth | ours) and a Fig. 8-like plot of the gradient-descent energy per step.
+Speed: median wall time per frame of decode + warp + fill + composite at `--speed-size`, three
+nodes, with a Table 1-like breakdown per stage. JSON: OUT/bench_raytree.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _size(s: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in s.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WxH, got {s!r}") from None
+    if not (16 <= w <= 4096 and 16 <= h <= 4096):
+        raise argparse.ArgumentTypeError(f"size out of range: {s}")
+    return w, h
+
+
+def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=True) -> list[dict]:
+    from ..io.images import write_image
+    from ..metrics import psnr
+    from ..raytree.decode import DecodeOptions, decode
+    from ..raytree.scenarios import make_case
+    from ..raytree.warp import WarpOptions, naive_warp, warp_decoded
+
+    rows, panels, hist = [], [], None
+    for name in cases:
+        t0 = time.perf_counter()
+        c = make_case(name, *size, move_cm=move, yaw_deg=yaw, supersample=supersample)
+        t_trace = time.perf_counter() - t0
+        keep = ~c.disoccluded
+        spec = c.specular & keep
+        row = {"case": name, "size": list(size), "supersample": supersample, "move_cm": move,
+               "yaw_deg": yaw, "pixels": int(keep.size), "disoccluded": int(c.disoccluded.sum()),
+               "specular_pixels": int(spec.sum()), "trace_s": round(t_trace, 2)}
+        for normals in ("reconstruct", "exact"):
+            o = WarpOptions(decode=DecodeOptions(normals=normals))
+            dec = decode(c.tree, device, o.decode)
+            r = warp_decoded(dec, c.new, o, record_history=(normals == "reconstruct"))
+            img = np.clip(r.image, 0, 1)
+            tag = "" if normals == "reconstruct" else "_exact_normals"
+            row["psnr" + tag] = round(psnr(img, c.gt_image, keep), 3)
+            row["psnr_specular" + tag] = round(psnr(img, c.gt_image, spec), 3)
+            if normals == "reconstruct":
+                nv = np.clip(naive_warp(dec, c.new, o), 0, 1)
+                row["psnr_naive"] = round(psnr(nv, c.gt_image, keep), 3)
+                row["psnr_specular_naive"] = round(psnr(nv, c.gt_image, spec), 3)
+                row["specular_gain_db"] = round(row["psnr_specular"] - row["psnr_specular_naive"], 3)
+                row["psnr_incl_disoccluded"] = round(psnr(img, c.gt_image), 3)
+                row["undefined_specular"] = [int((g & ~d).sum()) for g, d in zip(r.region[1:], r.defined[1:])]
+                panels.append(np.concatenate([nv, c.gt_image, img], 1))
+                if name == "chrome" or (hist is None and r.history):
+                    hist = (name, r.history)
+        rows.append(row)
+        if progress:
+            print(json.dumps(row), flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    if panels:  # Fig. 7: naive | ground truth | ours, display gamma 2.2
+        write_image(out / "fig7_side_by_side.png", np.concatenate(panels, 0).clip(0, 1) ** (1 / 2.2))
+    if hist is not None:
+        _plot_energy(hist, out / "fig8_energy.png")
+    return rows
+
+
+def _plot_energy(hist, path: Path, n: int = 12) -> None:
+    """Fig. 8: Delta (degrees) over the gradient-descent steps for sample pixels."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    name, h = hist
+    node = sorted(h)[0]
+    pix, E = h[node]
+    E = np.degrees(E)
+    moving = np.nonzero(E[0] > E[-1] + 1e-3)[0]
+    pick = moving if len(moving) else np.arange(E.shape[1])
+    rng = np.random.default_rng(0)
+    pick = rng.choice(pick, size=min(n, len(pick)), replace=False)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for j in pick:
+        ax.plot(np.arange(E.shape[0]), E[:, j], marker="o", ms=3, lw=1,
+                label=f"({pix[j][0]}, {pix[j][1]})")
+    ax.plot(np.arange(E.shape[0]), np.median(E, axis=1), "k--", lw=2, label="median, all pixels")
+    ax.axhline(1.0, color="r", lw=0.8, ls=":", label="epsilon = 1 deg")
+    ax.set_yscale("symlog", linthresh=1e-2)
+    ax.set_xlabel("gradient-descent step")
+    ax.set_ylabel("Delta (degrees)")
+    ax.set_title(f"specular search energy, case {name} (node {node})")
+    ax.legend(fontsize=6, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def speed(size, repeats, device) -> dict:
+    import torch
+
+    from ..raytree.scenarios import make_case
+    from ..raytree.warp import WarpOptions, warp
+
+    c = make_case("chrome", *size, supersample=1)
+    runs = []
+    o = WarpOptions()
+    warp(c.tree, c.new, o, device=device)  # warm-up (allocations, CUDA context)
+    for _ in range(repeats):
+        runs.append(warp(c.tree, c.new, o, device=device).timings)
+    keys = list(runs[0])
+    med = {k: round(1e3 * float(np.median([r.get(k, 0.0) for r in runs])), 2) for k in keys}
+    return {"size": list(size), "nodes": c.tree.n_nodes, "device": str(device),
+            "threads": torch.get_num_threads(), "repeats": repeats,
+            "median_ms": med, "total_runs_ms": [round(r["total"] * 1e3, 1) for r in runs]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.raytree", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", default="mirror,chrome,crystal,pane")
+    ap.add_argument("--scene", choices=("tiny", "mirror_room"), help="shortcut: tiny = mirror case at "
+                    "160x120, no supersampling, 320x240 speed run; mirror_room = the defaults")
+    ap.add_argument("--size", type=_size, default=(320, 240))
+    ap.add_argument("--supersample", type=int, default=3, help="odd; anti-aliased renders (3)")
+    ap.add_argument("--move", type=float, default=5.0, help="cm to the right (5)")
+    ap.add_argument("--yaw", type=float, default=3.0, help="degrees (3)")
+    ap.add_argument("--speed-size", type=_size, default=(1280, 720))
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_raytree"))
+    ap.add_argument("--skip-speed", action="store_true")
+    ap.add_argument("--skip-accuracy", action="store_true")
+    args = ap.parse_args(argv)
+    import torch
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        print("error: --device cuda but CUDA is not available", file=sys.stderr)
+        return 2
+    if args.scene == "tiny":
+        args.cases, args.size, args.supersample, args.speed_size = "mirror", (160, 120), 1, (320, 240)
+    cases = [c for c in args.cases.split(",") if c]
+    from ..raytree.scenarios import CASES
+    bad = [c for c in cases if c not in CASES]
+    if bad or args.supersample < 1 or args.supersample % 2 == 0 or args.repeats < 1:
+        print(f"error: bad --cases {bad} / --supersample (odd >= 1) / --repeats (>= 1)", file=sys.stderr)
+        return 2
+    result = {"command": "python -m ibr_pipeline.bench.raytree " + " ".join(argv or sys.argv[1:])}
+    if not args.skip_accuracy:
+        result["accuracy"] = accuracy(cases, args.size, args.supersample, args.move, args.yaw,
+                                      args.device, args.out)
+    if not args.skip_speed:
+        result["speed"] = speed(args.speed_size, args.repeats, args.device)
+        print(json.dumps(result["speed"], indent=1))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench_raytree.json").write_text(json.dumps(result, indent=1))
+    print(f"wrote {args.out / 'bench_raytree.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,168 @@
+"""Decoding of an RGBZ ray tree into position / normal buffers (Lochmann et al. 2014, §3.3).
+
+Per pixel l of the old image:
+  W_d(l) = unproject(M_old, (x, y, z))                                  "Diffuse position"
+  n_d(l) = (W_d(l + (0,1)) - W_d(l)) x (W_d(l + (1,0)) - W_d(l)),
+           smoothed by a 7x7 Gaussian (Fig. 3)                           "Normals"
+  w_r    = w_d + delta r_hat, r = reflect(w_d - c_old, n_d)             Eq. 1 "Reflected position"
+  w_f    = w_d + delta f_hat, f = refract(w_d - c_old, n_d, eta)        "Refracted position"
+Deeper nodes use their parent's positions and normals ("Deeper ray tree decoding"); the normals of
+a non-root parent are reconstructed the same way from its positions.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from . import ops
+from .encoding import FRESNEL_PANE, REFLECTIVE, RayTree
+
+
+@dataclass
+class DecodeOptions:
+    normals: str = "reconstruct"   # "reconstruct" (§3.3, from depth) or "exact" (ablation)
+    normal_ksize: int = 7          # §3.3: "a 7x7 gaussian blur kernel"
+    normal_sigma: float = 0.0      # 0: OpenCV's default sigma for the kernel size (1.4 for 7)
+    normal_diff: str = "forward"   # "forward": the paper's neighbour differences; "min": the
+                                   # shorter of forward/backward difference per axis (fewer
+                                   # normals across depth edges; an option, not the default)
+
+
+@dataclass
+class Decoded:
+    """Decoded buffers of one ray tree, torch tensors on one device (float32)."""
+    tree: RayTree
+    device: torch.device
+    K: torch.Tensor                 # (3, 3)
+    cam_from_world: torch.Tensor    # (4, 4)
+    center: torch.Tensor            # (3,) c_old
+    rgb: list[torch.Tensor]         # per node (H, W, 3)
+    depth: list[torch.Tensor]       # per node (H, W)
+    valid: list[torch.Tensor]       # per node (H, W) bool
+    pos: list[torch.Tensor]         # per node (H, W, 3) world positions (W_d, W_r, W_f, ...)
+    normal: list[torch.Tensor | None]  # per node (H, W, 3) normals (reconstructed) or None
+    dirs: list[torch.Tensor | None] = field(default_factory=list)  # per node incoming unit dirs
+    ior: torch.Tensor | None = None      # (H, W)
+    fresnel: torch.Tensor | None = None  # (H, W) long
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.tree.size
+
+
+def reconstruct_normals(W: torch.Tensor, valid: torch.Tensor, eye: torch.Tensor | None = None,
+                        ksize: int = 7, sigma: float = 0.0, diff: str = "forward") -> torch.Tensor:
+    """Screen-space normals from world positions (H, W, 3), §3.3 "Normals":
+    n = (W(l+(0,1)) - W(l)) x (W(l+(1,0)) - W(l)), then a ksize x ksize Gaussian (Fig. 3).
+    At the last row/column the backward difference is used. Normals face `eye` when given."""
+    ops.check(W, (None, None, 3), "positions")
+    ops.check(valid, tuple(W.shape[:2]), "valid")
+    if diff not in ("forward", "min"):
+        raise ValueError(f"normal_diff must be 'forward' or 'min', got {diff!r}")
+
+    def diffs(axis: int):
+        fwd = torch.zeros_like(W)
+        bwd = torch.zeros_like(W)
+        if axis == 0:
+            fwd[:-1] = W[1:] - W[:-1]
+            bwd[1:] = W[1:] - W[:-1]
+            fv = torch.zeros_like(valid)
+            bv = torch.zeros_like(valid)
+            fv[:-1] = valid[1:] & valid[:-1]
+            bv[1:] = valid[1:] & valid[:-1]
+        else:
+            fwd[:, :-1] = W[:, 1:] - W[:, :-1]
+            bwd[:, 1:] = W[:, 1:] - W[:, :-1]
+            fv = torch.zeros_like(valid)
+            bv = torch.zeros_like(valid)
+            fv[:, :-1] = valid[:, 1:] & valid[:, :-1]
+            bv[:, 1:] = valid[:, 1:] & valid[:, :-1]
+        if diff == "forward":
+            use_b = ~fv & bv
+        else:
+            use_b = bv & (~fv | (bwd.norm(dim=-1) < fwd.norm(dim=-1)))
+        return torch.where(use_b[..., None], bwd, fwd), fv | bv
+
+    dy, vy = diffs(0)   # W(l + (0, 1)) - W(l): one row down
+    dx, vx = diffs(1)   # W(l + (1, 0)) - W(l): one column right
+    n = torch.linalg.cross(dy, dx, dim=-1)
+    ok = valid & vx & vy & (n.norm(dim=-1) > 0)
+    n = ops.normalize(n)
+    if eye is not None:  # orient towards the camera (a backward difference flips the sign)
+        flip = ((eye - W) * n).sum(-1, keepdim=True) < 0
+        n = torch.where(flip, -n, n)
+    if ksize > 1:  # §3.3: 7x7 Gaussian against discretisation / quantisation errors (Fig. 3)
+        n = ops.blur_masked(n, ok, ksize, sigma)
+    return ops.normalize(n)
+
+
+def decode(tree: RayTree, device: str | torch.device = "cpu", options: DecodeOptions | None = None,
+           timings: dict | None = None) -> Decoded:
+    """Decode every node in pre-order (§3.3). `timings` (if given) gets seconds per step."""
+    import time
+    opts = options or DecodeOptions()
+    if opts.normals not in ("reconstruct", "exact"):
+        raise ValueError(f"normals must be 'reconstruct' or 'exact', got {opts.normals!r}")
+    if opts.normals == "exact" and tree.normal is None:
+        raise ValueError("normals='exact' needs a ray tree with exact normals")
+    dev = torch.device(device)
+    f32 = dict(device=dev, dtype=torch.float32)
+    tic = time.perf_counter()
+    K = torch.as_tensor(tree.K, **f32)
+    T = torch.as_tensor(tree.cam_from_world, **f32)
+    center = -T[:3, :3].T @ T[:3, 3]
+    n_nodes = tree.n_nodes
+    rgb = [torch.as_tensor(np.asarray(tree.rgb[i], np.float32), device=dev) for i in range(n_nodes)]
+    depth = [torch.as_tensor(tree.depth[i], **f32) for i in range(n_nodes)]
+    bits = torch.as_tensor(tree.valid, device=dev).to(torch.int32)
+    valid = [((bits >> i) & 1) > 0 for i in range(n_nodes)]
+    valid[0] = valid[0] & (depth[0] > 0)
+    # diffuse position: W_d = unproject(M_old, (x, y, z))  (§3.3)
+    Wd = ops.unproject(K, T, depth[0])
+    ops.sync(dev)
+    t1 = time.perf_counter()
+    if opts.normals == "exact":
+        nd = ops.normalize(torch.as_tensor(tree.normal, **f32))
+    else:
+        nd = reconstruct_normals(Wd, valid[0], center, opts.normal_ksize, opts.normal_sigma,
+                                 opts.normal_diff)
+    ops.sync(dev)
+    t2 = time.perf_counter()
+    ior = torch.as_tensor(tree.ior, **f32)
+    fres = torch.as_tensor(tree.fresnel, device=dev).long()
+    pos = [Wd] + [None] * (n_nodes - 1)
+    normal = [nd] + [None] * (n_nodes - 1)
+    dirs = [ops.normalize(Wd - center)] + [None] * (n_nodes - 1)
+    for i in range(1, n_nodes):
+        p = int(tree.parent[i])
+        d_in, n_p = dirs[p], normal[p]
+        if n_p is None:  # deeper node: reconstruct the parent's normals from its positions
+            n_p = normal[p] = reconstruct_normals(pos[p], valid[p], None, opts.normal_ksize,
+                                                  opts.normal_sigma, opts.normal_diff)
+            n_p = torch.where(((d_in * n_p).sum(-1, keepdim=True) > 0), -n_p, n_p)
+        if int(tree.kind[i]) == REFLECTIVE:
+            r = ops.reflect(d_in, n_p)                                  # §3.3 Eq. 1
+            tir = torch.zeros_like(valid[i])
+        else:
+            eta = eta_of(ior, fres)
+            r, tir = ops.refract(d_in, n_p, eta)                        # §3.3 refracted position
+        r = ops.normalize(r)
+        valid[i] = valid[i] & valid[p] & ~tir & (depth[i] > 0)
+        pos[i] = pos[p] + depth[i][..., None] * r                       # w = w_parent + delta r_hat
+        dirs[i] = r
+    ops.sync(dev)
+    t3 = time.perf_counter()
+    if timings is not None:
+        timings["decode_diffuse"] = t1 - tic
+        timings["decode_normal"] = t2 - t1
+        timings["decode_specular"] = t3 - t2
+    return Decoded(tree, dev, K, T, center, rgb, depth, valid, pos, normal, dirs, ior, fres)
+
+
+def eta_of(ior: torch.Tensor, fresnel: torch.Tensor) -> torch.Tensor:
+    """Ratio of IORs for the refracted direction: n_air / n_material (entering from air);
+    1 for a thin pane (its two parallel faces cancel the bending) or where no IOR is given."""
+    eta = 1.0 / ior.clamp_min(1e-6)
+    return torch.where((fresnel == FRESNEL_PANE) | (ior <= 0), torch.ones_like(eta), eta)

@@ -1,0 +1,111 @@
+"""Diffuse flow (Lochmann et al. 2014, §3.4 "Diffuse flow", Fig. 4 a-d).
+
+  forward flow   f_d^-1(l_old) = project(M_new, W_d(l_old)) - l_old
+  backward flow  f_d(l_new): splat every old location to round(l_new) with a depth test (Fig. 4b),
+                 replace each pixel's flow by the one closest to the camera in its 3x3
+                 neighbourhood (closes magnification holes, dilates edges, Fig. 4c), then one
+                 fixed-point-iteration step (Bowles et al. 2012) x1 = l_new - f_d^-1(x0) that
+                 discards pixels where the iteration does not converge (Fig. 4d).
+The result is, per new pixel, a continuous old-image location x1 = l_new + f_d(l_new) and a mask.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from . import ops
+
+_BIG = torch.iinfo(torch.int64).max
+
+
+@dataclass
+class Flow:
+    src: torch.Tensor      # (Hn, Wn, 2) old-image location read by each new pixel (l + f_d(l))
+    ok: torch.Tensor       # (Hn, Wn) bool, flow defined (converged)
+    splat_hit: torch.Tensor  # (Hn, Wn) bool, a point was splatted here (Fig. 4b)
+    filled: torch.Tensor   # (Hn, Wn) bool, defined after the 3x3 fill (Fig. 4c)
+
+
+def splat_keys(uv: torch.Tensor, z: torch.Tensor, valid: torch.Tensor, new_size: tuple[int, int]):
+    """Point splatting with depth test (§3.4 `splat`): (Hn*Wn,) int64 keys z_q * P + old index,
+    the smallest key per new pixel wins (closest to the camera); _BIG where nothing landed."""
+    H, W = valid.shape
+    Wn, Hn = new_size
+    n_old = H * W
+    t = torch.round(uv.reshape(-1, 2)).long()
+    zf = z.reshape(-1)
+    ok = valid.reshape(-1) & (zf > 1e-6) & (t[:, 0] >= 0) & (t[:, 0] < Wn) & (t[:, 1] >= 0) & (t[:, 1] < Hn)
+    zq = torch.round(zf.clamp(0, 1e4) * 1e5).long()  # 10 um depth quantum for the depth test
+    key = zq * n_old + torch.arange(n_old, device=uv.device)
+    buf = torch.full((Hn * Wn,), _BIG, dtype=torch.int64, device=uv.device)
+    buf.scatter_reduce_(0, (t[:, 1] * Wn + t[:, 0])[ok], key[ok], reduce="amin")
+    return buf
+
+
+def closest_3x3(keys: torch.Tensor, new_size: tuple[int, int]) -> torch.Tensor:
+    """§3.4: "the flow at each pixel is replaced by the flow of the pixel that is closest to the
+    camera in a 3x3 neighborhood" (min key over the 9 neighbours)."""
+    Wn, Hn = new_size
+    k = torch.nn.functional.pad(keys.view(Hn, Wn), (1, 1, 1, 1), value=_BIG)
+    out = k[1:-1, 1:-1].clone()
+    for dy in range(3):
+        for dx in range(3):
+            out = torch.minimum(out, k[dy:dy + Hn, dx:dx + Wn])
+    return out.reshape(-1)
+
+
+def diffuse_flow(pos: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, P_new: torch.Tensor,
+                 new_size: tuple[int, int], fpi_eps: float = 0.5, rel_tol: float = 0.05,
+                 fallback: bool = True) -> Flow:
+    """Backward diffuse flow for positions `pos` (H, W, 3) seen at old z-depth `depth` (H, W).
+
+    fpi_eps: convergence threshold of the fixed-point step in new-image pixels (bilinear
+    residual; 2 x fpi_eps where the old neighbourhood is not smooth and the nearest tap is used).
+    fallback: where the 3x3-filled candidate fails the test, also try the directly splatted
+    point (our addition: keeps background pixels next to a foreground edge instead of leaving a
+    hole for push-pull)."""
+    ops.check(pos, (None, None, 3), "positions")
+    ops.check(valid, tuple(pos.shape[:2]), "valid")
+    ops.check(depth, tuple(pos.shape[:2]), "depth")
+    ops.check(P_new, (3, 4), "P_new")
+    H, W = valid.shape
+    Wn, Hn = new_size
+    n_old = H * W
+    dev = pos.device
+    uv, z = ops.project(P_new, pos)            # l_new = project(M_new, W_d)  (§3.4)
+    direct = splat_keys(uv, z, valid, new_size)
+    filled = closest_3x3(direct, new_size)
+    sampler = ops.Sampler(valid, depth, rel_tol)
+    uv_flat = uv.reshape(-1, 2)
+    v, u = torch.meshgrid(torch.arange(Hn, device=dev), torch.arange(Wn, device=dev), indexing="ij")
+    p = torch.stack([u, v], -1).reshape(-1, 2).to(pos.dtype)
+
+    def fpi(keys):
+        has = keys != _BIG
+        idx = torch.where(has, keys % n_old, torch.zeros_like(keys))
+        x0 = torch.stack([idx % W, idx // W], -1).to(pos.dtype)
+        # one fixed-point step (Bowles et al. 2012): x1 = l_new - f^-1(x0) = x0 + (l_new - uv(x0))
+        x1 = x0 + (p - uv_flat[idx])
+        uv1, smooth, defined = sampler.sample(uv.reshape(H, W, 2), x1)
+        res = (uv1 - p).norm(dim=-1)
+        conv = has & defined & (res < torch.where(smooth, torch.full_like(res, fpi_eps),
+                                                  torch.full_like(res, 2 * fpi_eps)))
+        inside = (x1[:, 0] > -0.5) & (x1[:, 0] < W - 0.5) & (x1[:, 1] > -0.5) & (x1[:, 1] < H - 0.5)
+        return x1, conv & inside
+
+    x1, ok = fpi(filled)
+    if fallback:
+        x1b, okb = fpi(direct)
+        use_b = ~ok & okb
+        x1 = torch.where(use_b[:, None], x1b, x1)
+        ok = ok | okb
+    return Flow(src=x1.view(Hn, Wn, 2), ok=ok.view(Hn, Wn), splat_hit=(direct != _BIG).view(Hn, Wn),
+                filled=(filled != _BIG).view(Hn, Wn))
+
+
+def projection_matrix(K, cam_from_world, device) -> torch.Tensor:
+    """3x4 pixel projection P = K [R | t] of a camera (the new M_new of §3.4)."""
+    import numpy as np
+    P = np.asarray(K, np.float64) @ np.asarray(cam_from_world, np.float64)[:3]
+    return torch.as_tensor(P, dtype=torch.float32, device=device)
