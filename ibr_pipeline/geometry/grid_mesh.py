@@ -1,0 +1,165 @@
+"""Per-view surface meshes from refined depth (Xu et al. §4.2.3).
+
+"We initialize a triangle mesh by converting each pixel square into two triangles. We then apply
+[Garland and Heckbert 1997] to simplify the mesh ... we preserve mesh edges along depth occlusion
+edges by increasing their quadric error by a factor of 400-500."
+
+fast-simplification (Garland-Heckbert quadrics) has no per-edge weights, so the occlusion edges are
+preserved by construction instead: a triangle that has a side across an Eq. 1 depth edge is not
+created (the grid is cut there and never stretched across the edge), and the simplification runs with
+`preserve_border=True`, so every vertex on a cut (and on the image frame) survives. The diagonal of
+each pixel square is chosen so that it does not cross an edge where the other one would not.
+The simplification target adapts to content: the mesh is simplified through a halving sequence of
+targets, each step from the previous result, and the smallest mesh whose depth (ray cast into the
+view) stays within the error tolerance of the refined depth is kept: a flat wall ends with few
+triangles, a cluttered view with many.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..scene import Camera
+from .depth_edges import PairEdges
+
+
+def grid_faces(valid: np.ndarray, edges: PairEdges) -> np.ndarray:
+    """(F, 3) int64 faces over the pixel grid (vertex index = y * W + x), two per pixel square,
+    none with a side across a depth edge or a corner without depth. Counter-clockwise as seen by
+    the camera (OpenCV: image y down)."""
+    valid = np.asarray(valid, bool)
+    h, w = valid.shape
+    if edges.right.shape != (h, w - 1) or edges.down.shape != (h - 1, w):
+        raise ValueError(f"edges do not match a {h}x{w} grid")
+    y, x = np.mgrid[0:h - 1, 0:w - 1]
+    a = y * w + x        # (y, x)
+    b = a + 1            # (y, x+1)
+    c = a + w            # (y+1, x)
+    d = c + 1            # (y+1, x+1)
+    va, vb, vc, vd = valid[:-1, :-1], valid[:-1, 1:], valid[1:, :-1], valid[1:, 1:]
+    top, bottom = edges.right[:-1, :], edges.right[1:, :]      # a-b, c-d
+    left, right = edges.down[:, :-1], edges.down[:, 1:]        # a-c, b-d
+    # diagonal b-c (anti) unless it is an edge and a-d (diag) is not
+    use_ad = edges.anti & ~edges.diag
+    faces = []
+    # split along b-c: triangles (a, c, b) and (b, c, d)
+    t1 = ~use_ad & va & vb & vc & ~top & ~left & ~edges.anti
+    t2 = ~use_ad & vb & vc & vd & ~bottom & ~right & ~edges.anti
+    # split along a-d: triangles (a, c, d) and (a, d, b)
+    t3 = use_ad & va & vc & vd & ~left & ~bottom & ~edges.diag
+    t4 = use_ad & va & vd & vb & ~right & ~top & ~edges.diag
+    for m, tri in ((t1, (a, c, b)), (t2, (b, c, d)), (t3, (a, c, d)), (t4, (a, d, b))):
+        faces.append(np.stack([t[m] for t in tri], 1))
+    return np.concatenate(faces, 0).astype(np.int64)
+
+
+def compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop vertices no face uses; returns (vertices, re-indexed faces)."""
+    used = np.unique(faces)
+    remap = np.full(len(vertices), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return vertices[used], remap[faces]
+
+
+def render_depth(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray:
+    """(H, W) z-depth of a world-space mesh seen by `camera` (0 = miss), by open3d ray casting."""
+    from ..render.raycast import build_scene, camera_rays, cast
+    from .normals import pixel_rays
+
+    h, w = camera.height, camera.width
+    if len(faces) == 0:
+        return np.zeros((h, w))
+    scene = build_scene(vertices, faces)
+    o, d = camera_rays(camera)
+    t = cast(scene, o, d)["t_hit"]
+    rn = np.linalg.norm(pixel_rays(camera.K, h, w).reshape(-1, 3), axis=1)
+    return np.where(np.isfinite(t), t / rn, 0.0).reshape(h, w)
+
+
+def depth_error(mesh_depth: np.ndarray, ref_depth: np.ndarray, region: np.ndarray | None = None,
+                miss_rel: float = 0.05) -> dict:
+    """Error of a mesh's rendered depth against a reference over the reference's valid pixels
+    (optionally within `region`): median and mean absolute error of the pixels both cover, coverage,
+    and `score` = mean of min(|dd| / d, miss_rel) with misses counted as miss_rel."""
+    if mesh_depth.shape != ref_depth.shape:
+        raise ValueError(f"depth shapes differ: {mesh_depth.shape} vs {ref_depth.shape}")
+    ref_ok = ref_depth > 0 if region is None else (ref_depth > 0) & region
+    n = int(ref_ok.sum())
+    if n == 0:
+        return {"pixels": 0, "coverage": float("nan"), "median_m": float("nan"),
+                "mean_m": float("nan"), "score": float("nan")}
+    hit = ref_ok & (mesh_depth > 0)
+    err = np.abs(mesh_depth - ref_depth)
+    rel = np.where(hit, np.minimum(err / np.maximum(ref_depth, 1e-9), miss_rel), miss_rel)[ref_ok]
+    e = err[hit]
+    return {"pixels": n, "coverage": float(hit.sum() / n),
+            "median_m": float(np.median(e)) if len(e) else float("nan"),
+            "mean_m": float(e.mean()) if len(e) else float("nan"), "score": float(rel.mean())}
+
+
+@dataclass
+class SimplifyResult:
+    vertices: np.ndarray
+    faces: np.ndarray
+    grid_vertices: int
+    grid_faces: int
+    steps: list  # [{target, vertices, faces, score}] tried, in order
+
+
+def simplify_adaptive(vertices: np.ndarray, faces: np.ndarray, camera: Camera, ref_depth: np.ndarray,
+                      max_vertices: int, min_vertices: int = 200, tol_score: float = 0.002,
+                      agg: float = 7.0) -> SimplifyResult:
+    """Quadric simplification (fast-simplification, preserve_border=True) to at most
+    `max_vertices`, then through halving targets while the rendered depth's score (`depth_error`)
+    stays within `tol_score` of the grid mesh's score (i.e. the mean relative depth error grows by
+    at most tol_score); the last mesh within tolerance is returned."""
+    import fast_simplification as fs
+
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"expected (V, 3) vertices and (F, 3) faces, got {vertices.shape}, {faces.shape}")
+    nv0, nf0 = len(vertices), len(faces)
+    steps = []
+    if nf0 == 0:
+        return SimplifyResult(vertices, faces, nv0, nf0, steps)
+    base = depth_error(render_depth(vertices, faces, camera), ref_depth)["score"]
+
+    def simp(v, f, target_faces):
+        if target_faces >= len(f):
+            return v, f
+        v2, f2 = fs.simplify(v.astype(np.float32), f.astype(np.int32), target_count=int(target_faces),
+                             agg=agg, preserve_border=True)
+        return compact(np.asarray(v2, np.float64), np.asarray(f2, np.int64))
+
+    # a triangle mesh has ~2 faces per vertex
+    v, f = simp(vertices, faces, 2 * max_vertices) if nv0 > max_vertices else (vertices, faces)
+    best = (v, f)
+    target = len(f)
+    while True:
+        score = depth_error(render_depth(v, f, camera), ref_depth)["score"]
+        steps.append({"target_faces": int(target), "vertices": int(len(v)), "faces": int(len(f)),
+                      "score": round(float(score), 6)})
+        if score > base + tol_score and len(steps) > 1:
+            break
+        best = (v, f)
+        target = len(f) // 2
+        if len(v) <= min_vertices or target < 2 * min_vertices:
+            break
+        v2, f2 = simp(v, f, target)
+        if len(f2) > 0.9 * len(f):  # the border-preserving simplification cannot go further
+            break
+        v, f = v2, f2
+    return SimplifyResult(best[0], best[1], nv0, nf0, steps)
+
+
+def grid_mesh(depth: np.ndarray, camera: Camera, edges: PairEdges) -> tuple[np.ndarray, np.ndarray]:
+    """World-space (vertices (V, 3), faces (F, 3)) of the cut pixel-grid mesh of a depth image."""
+    from .normals import points_from_depth
+
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.shape != (camera.height, camera.width):
+        raise ValueError(f"depth {depth.shape} does not match camera {camera.width}x{camera.height}")
+    P = points_from_depth(depth, camera.K).reshape(-1, 3)
+    Pw = (P - camera.t) @ camera.R
+    f = grid_faces(depth > 0, edges)
+    return compact(Pw, f)
