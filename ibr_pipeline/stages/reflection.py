@@ -1,6 +1,406 @@
-"""Stage `reflection`: two-layer reflection decomposition. Not built yet (issue #6, Xu et al. §4.3)."""
+"""Stage `reflection`: two-layer reflection decomposition (Xu et al. §4.3, Eqs. 3-13), per view.
+
+Reads global/cameras.json, global/mesh.ply (G), input/reflectors.json (user planes, optional) and
+every registered view's image and views/<v>/depth.npy, mesh.ply. Writes reflection/planes.json
+(detected + user-given reflectors, written identically by every view task; computed once under a
+file lock) and per view layers.json; views that see a reflector also get I0.png, I1.png, beta.npy,
+M0.ply, M1.ply (docs/PIPELINE.md). The mathematics is in geometry/{planes,grid_warp,decompose,
+reflector_detect}.py; docs/REFLECTION.md explains the choices.
+"""
 from __future__ import annotations
 
-from .common import planned
+import hashlib
+import json
+import logging
+from dataclasses import dataclass
 
-STAGE = planned('reflection', 'two-layer reflection decomposition', 'issue #6, Xu et al. §4.3')
+from ..config import StageConfig, param
+from ..errors import InputError
+from ..runner import Stage, StageContext
+from .common import REGISTERED_CAMERAS, registered_cameras, registered_views
+
+log = logging.getLogger("ibr_pipeline.reflection")
+PLANES = "reflection/planes.json"
+LAYER_FILES = ("I0.png", "I1.png", "beta.npy", "M0.ply", "M1.ply")
+
+
+@dataclass(frozen=True)
+class ReflectionConfig(StageConfig):
+    use_user_reflectors: bool = param(True, "use input/reflectors.json planes (the paper's UI)")
+    detect: bool = param(True, "detect reflective planes of G by the multi-view consistency cue")
+    ransac_distance: float = param(0.008, "RANSAC inlier distance for planes of G (m)", min=1e-4, max=0.5)
+    max_planes: int = param(30, "RANSAC planes extracted from G (detection candidates)", min=1, max=500)
+    detect_threshold: float = param(0.02, "median surface-warp error above which a plane is a "
+                                    "reflector (linear intensity)", min=1e-4, max=1.0)
+    mirror_ratio: float = param(0.5, "mirror-warp / surface-warp error below which a detected "
+                                "reflector is a mirror (beta = 1, I0 = 0)", min=0.0, max=10.0)
+    work_scale: float = param(0.5, "working resolution as a fraction of the image size (demo budget; "
+                              "1.0 = full quality)",
+                              min=0.1, max=1.0)
+    max_neighbours: int = param(6, "N_k size (§4.3.1: top 6)", min=1, max=30)
+    min_neighbours: int = param(1, "fewer neighbours: decomposition discarded (not for mirrors)",
+                                min=1, max=30)
+    min_overlap: float = param(0.3, "neighbour depth-overlap fraction (§4.3.1: 30 %)", min=0.0, max=1.0)
+    overlap_tol: float = param(0.05, "depth-overlap tolerance x min depth (§4.3.1: 0.05)",
+                               min=1e-4, max=1.0)
+    grid_x: int = param(40, "ARAP warp grid cells across (§4.3.1: 40)", min=1, max=400)
+    grid_y: int = param(30, "ARAP warp grid cells down (§4.3.1: 30)", min=1, max=400)
+    w_r: float = param(1.2, "Eq. 5 offset regulariser weight (1.2)", min=0.0, max=1e4)
+    w_a: float = param(0.5, "Eq. 5 ARAP weight (0.5)", min=0.0, max=1e4)
+    gn_iterations: int = param(5, "Gauss-Newton iterations of the grid warp (5)", min=0, max=100)
+    use_warp: bool = param(True, "refine the init flow by the ARAP grid warp (Eqs. 4-5)")
+    lambda_s: float = param(0.04, "Eq. 7 smoothness weight (0.04)", min=0.0, max=1e4)
+    lambda_p: float = param(0.01, "Eq. 7 prior weight (0.01)", min=0.0, max=1e4)
+    lambda_mv: float = param(0.05, "Eq. 7 multi-view weight after aggregation (0.05)", min=0.0, max=1e4)
+    outer_iterations: int = param(2, "alternations image/geometry per pass", min=0, max=50)
+    image_iterations: int = param(30, "L-BFGS-B iterations per image step", min=1, max=10000)
+    pose_iterations: int = param(5, "L-BFGS iterations per (R, T) step", min=0, max=1000)
+    multiview: bool = param(False, "second pass with multi-view consistency (§4.3.3, Eqs. 11-13); "
+                             "off by default: it decomposes every neighbour too (~7x the time)")
+    saturation: float = param(0.98, "highlight threshold: pixels left out of E_d", min=0.5, max=1.0)
+    min_mask_pixels: int = param(100, "smaller reflector masks (at working size) are ignored",
+                                 min=1, max=10**7)
+    mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
+
+    def check(self, prefix: str) -> None:
+        from ..errors import ConfigError
+        if self.min_neighbours > self.max_neighbours:
+            raise ConfigError(prefix + "min_neighbours", "must be <= max_neighbours")
+
+
+def options(cfg: ReflectionConfig):
+    from ..geometry.decompose import DecomposeOptions
+    return DecomposeOptions(
+        max_neighbours=cfg.max_neighbours, min_overlap=cfg.min_overlap,
+        overlap_tol=cfg.overlap_tol, grid=(cfg.grid_x, cfg.grid_y), w_r=cfg.w_r, w_a=cfg.w_a,
+        gn_iterations=cfg.gn_iterations, use_warp=cfg.use_warp, lambda_s=cfg.lambda_s,
+        lambda_p=cfg.lambda_p, lambda_mv=cfg.lambda_mv, outer_iterations=cfg.outer_iterations,
+        image_iterations=cfg.image_iterations, pose_iterations=cfg.pose_iterations,
+        saturation=cfg.saturation)
+
+
+# --- declarations -------------------------------------------------------------------------------
+def _user_reflectors_key(ctx) -> list[str]:
+    return ["input/reflectors.json"] if ctx.ws.exists("input/reflectors.json") else []
+
+
+def inputs(ctx: StageContext) -> list[str]:
+    keys = [REGISTERED_CAMERAS, "global/mesh.ply"] + _user_reflectors_key(ctx)
+    for v in registered_views(ctx):  # neighbours are chosen at run time: every view may be read
+        keys += [ctx.scene.view(v).image, ctx.ws.view_file(v, "depth.npy")]
+    return keys
+
+
+def view_inputs(ctx: StageContext, view: str) -> list[str]:
+    return [ctx.ws.view_file(view, "mesh.ply")]
+
+
+def view_outputs(ctx: StageContext, view: str) -> list[str]:
+    keys = [PLANES, ctx.ws.view_file(view, "layers.json")]
+    p = ctx.ws.path(keys[1])
+    if p.is_file() and json.loads(p.read_text()).get("reflector") is not None:
+        keys += [ctx.ws.view_file(view, f) for f in LAYER_FILES]
+    return keys
+
+
+# --- loading ------------------------------------------------------------------------------------
+class Loader:
+    """Reads views at working resolution and builds ViewGeoms; caches within one process."""
+
+    def __init__(self, ctx: StageContext):
+        from ..io.mesh import read_ply
+        from ..render.raycast import build_scene
+
+        self.ctx, self.ws, self.cfg = ctx, ctx.ws, ctx.config
+        self.cams = registered_cameras(ctx.ws)
+        self.names = registered_views(ctx)
+        G = read_ply(ctx.ws.path("global/mesh.ply"))
+        if len(G.faces) == 0:
+            raise InputError(f"{ctx.ws.path('global/mesh.ply')}: global mesh has no triangles")
+        self.G = G
+        self.scene = build_scene(G.vertices, G.faces)
+        self._raw: dict = {}
+        self._geo: dict = {}
+
+    def camera(self, name):
+        cam = self.cams[name]
+        s = self.cfg.work_scale
+        if s >= 1.0:
+            return cam
+        return cam.resized(max(8, round(cam.width * s)), max(8, round(cam.height * s)))
+
+    def raw(self, name):
+        """(full image, full depth, working camera, working image, working depth)."""
+        if name in self._raw:
+            return self._raw[name]
+        import cv2
+        import numpy as np
+
+        from ..io.images import read_image
+        cam = self.cams[name]
+        img = read_image(self.ws.path(self.ctx.scene.view(name).image))
+        dkey = self.ws.view_file(name, "depth.npy")
+        try:
+            depth = np.load(self.ws.path(dkey)).astype(np.float64)
+        except (OSError, ValueError) as e:
+            raise InputError(f"{self.ws.path(dkey)}: cannot read depth ({e})") from None
+        if depth.shape != (cam.height, cam.width) or img.shape[:2] != depth.shape:
+            raise InputError(f"{self.ws.path(dkey)}: depth is {depth.shape}, image is "
+                             f"{img.shape[:2]}, camera is {cam.height}x{cam.width}")
+        if not np.all(np.isfinite(depth)):
+            raise InputError(f"{self.ws.path(dkey)}: depth has NaN/inf (0 means no depth)")
+        wc = self.camera(name)
+        if wc is cam:
+            wi, wd = img.astype(np.float64), depth
+        else:
+            wi = cv2.resize(img, (wc.width, wc.height), interpolation=cv2.INTER_AREA).astype(np.float64)
+            wd = cv2.resize(depth, (wc.width, wc.height), interpolation=cv2.INTER_NEAREST)
+        self._raw[name] = (img, depth, wc, wi, wd)
+        return self._raw[name]
+
+    def mask(self, name, refl):
+        import cv2
+        import numpy as np
+
+        from ..geometry.planes import reflector_mask
+        _, _, wc, _, wd = self.raw(name)
+        if refl.get("masks", {}).get(name):  # a user mask overrides the projected extent
+            from ..io.images import read_image
+            m = read_image(self.ws.path(refl["masks"][name])).mean(2) > 0.5
+            m = cv2.resize(m.astype(np.uint8), (wc.width, wc.height),
+                           interpolation=cv2.INTER_NEAREST) > 0
+            return m & (wd > 0)
+        poly = None if refl.get("polygon") is None else np.asarray(refl["polygon"])
+        return reflector_mask(wc, refl["plane"], poly, wd, rel_tol=0.02)
+
+    def geom(self, name, refl):
+        key = (name, refl["name"])
+        if key in self._geo:
+            return self._geo[key]
+        from ..geometry.decompose import ViewGeom
+        from ..geometry.planes import depth_points, mirror_points
+        _, _, wc, wi, wd = self.raw(name)
+        m = self.mask(name, refl)
+        X1, D1 = mirror_points(wc, refl["plane"], m, self.scene)
+        g = ViewGeom(name, wc, wi, wd, m, depth_points(wc, wd), X1, D1)
+        self._geo[key] = g
+        return g
+
+
+# --- reflector planes (shared by every view; computed once under a lock) --------------------------
+def _fingerprint(ctx) -> str:
+    from ..runner import file_sha256
+    h = hashlib.sha256()
+    for key in [REGISTERED_CAMERAS, "global/mesh.ply"] + _user_reflectors_key(ctx):
+        h.update(key.encode() + file_sha256(ctx.ws.path(key)).encode())
+    cfg = ctx.config
+    h.update(json.dumps([cfg.use_user_reflectors, cfg.detect, cfg.ransac_distance,
+                         cfg.detect_threshold, cfg.mirror_ratio, cfg.work_scale,
+                         cfg.min_mask_pixels]).encode())
+    if cfg.detect:
+        for v in registered_views(ctx):
+            h.update(file_sha256(ctx.ws.path(ctx.ws.view_file(v, "depth.npy"))).encode())
+    return h.hexdigest()[:16]
+
+
+def _same_plane(a, b, angle_deg=5.0, offset=0.05) -> bool:
+    import numpy as np
+    na, nb = np.asarray(a[:3]), np.asarray(b[:3])
+    cos = float(na @ nb)
+    if cos < 0:
+        cos, b = -cos, [-x for x in b]
+    return cos > np.cos(np.radians(angle_deg)) and abs(a[3] - b[3]) < offset
+
+
+def compute_planes(ctx, loader: Loader) -> dict:
+    """User reflectors + planes of G detected by the multi-view cue (user ones win on overlap)."""
+    import numpy as np
+
+    from ..geometry.planes import ransac_planes
+    from ..geometry.reflector_detect import is_reflective, score_candidate
+    cfg = ctx.config
+    user = []
+    if cfg.use_user_reflectors and ctx.ws.exists("input/reflectors.json"):
+        from ..scene import read_reflectors
+        for r in read_reflectors(ctx.ws.path("input/reflectors.json")):
+            d = r.to_dict()
+            d["masks"] = {v: f"input/{k}" for v, k in r.masks.items()}
+            d["source"] = "user"
+            user.append(d)
+    detected, candidates = [], []
+    if cfg.detect:
+        import open3d as o3d
+        G = loader.G
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(G.vertices.astype(np.float64)),
+                                      o3d.utility.Vector3iVector(G.faces))
+        area = m.get_surface_area()
+        pts = np.asarray(m.sample_points_uniformly(int(min(200000, max(20000, area * 2000))),
+                                                   seed=0).points) \
+            if "seed" in o3d.geometry.TriangleMesh.sample_points_uniformly.__doc__ else \
+            np.asarray(m.sample_points_uniformly(int(min(200000, max(20000, area * 2000)))).points)
+        centres = np.array([loader.cams[v].center for v in loader.names])
+        for i, c in enumerate(ransac_planes(pts, distance=cfg.ransac_distance, seed=0,
+                                            max_planes=cfg.max_planes, min_points=200)):
+            pl = np.asarray(c["plane"])
+            if np.median(centres @ pl[:3] + pl[3]) < 0:  # orient n towards the cameras
+                pl = -pl
+            cand = {"name": f"detected_{i}", "plane": [float(x) for x in pl],
+                    "polygon": c["polygon"].tolist(), "beta": None, "masks": {}}
+            views = []
+            for v in loader.names:
+                g = loader.geom(v, cand)
+                if g.mask.sum() >= cfg.min_mask_pixels:
+                    views.append(g)
+            score = score_candidate(views) if len(views) >= 2 else {"surface_error": None}
+            cand["score"] = score
+            cand["views"] = len(views)
+            candidates.append({k: cand[k] for k in ("name", "plane", "score", "views")})
+            if is_reflective(score, cfg.detect_threshold):
+                if score.get("mirror_ratio") is not None and score["mirror_ratio"] < cfg.mirror_ratio:
+                    cand["beta"] = 1.0  # a mirror (§4.3.3 special case)
+                cand["source"] = "detected"
+                detected.append(cand)
+    merged = list(user)
+    for d in detected:
+        if not any(_same_plane(d["plane"], u["plane"]) for u in user):
+            merged.append(d)
+    return {"format": "ibr_pipeline.reflectors/1", "reflectors": merged, "candidates": candidates,
+            "fingerprint": _fingerprint(ctx)}
+
+
+def get_planes(ctx, loader: Loader) -> dict:
+    import fcntl
+    fp = _fingerprint(ctx)
+    path = ctx.ws.path(PLANES)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.parent / ".planes.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if path.is_file():
+            try:
+                d = json.loads(path.read_text())
+                if d.get("fingerprint") == fp:
+                    return d
+            except json.JSONDecodeError:
+                pass
+        d = compute_planes(ctx, loader)
+        ctx.ws.write_json(PLANES, d)
+        return d
+
+
+# --- the per-view task --------------------------------------------------------------------------
+def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> dict:
+    from ..geometry.decompose import decompose, select_neighbours
+    mirror = refl.get("beta") == 1.0
+    beta = float(refl.get("beta") or 1.0)
+    ref = loader.geom(view, refl)
+    others = [loader.geom(o, refl) for o in loader.names if o != view]
+    nbs_sel = select_neighbours(ref, [o for o in others if o.mask.sum() >= cfg.min_mask_pixels], opts)
+    byname = {o.name: o for o in others}
+    nbs = [byname[n] for n, _ in nbs_sel]
+    info = {"name": refl["name"], "beta": beta, "mirror": mirror, "mask_pixels": int(ref.mask.sum()),
+            "neighbours": [{"view": n, "overlap": round(f, 3)} for n, f in nbs_sel]}
+    if not mirror and len(nbs) < cfg.min_neighbours:
+        info["discarded"] = f"{len(nbs)} neighbour(s) with > {cfg.min_overlap:.0%} overlap"
+        return info
+    res = decompose(ref, nbs, opts, beta=beta, mirror=mirror)
+    history = [dict(h, **{"pass": 1}) for h in res["history"]]
+    if cfg.multiview and not mirror and nbs:  # §4.3.3: aggregate the neighbours' first pass
+        prev = {}
+        for nb in nbs:
+            nn = select_neighbours(nb, [o for o in [ref] + others if o.name != nb.name
+                                        and o.mask.sum() >= cfg.min_mask_pixels], opts)
+            nbn = [loader.geom(n, refl) for n, _ in nn]
+            if nbn:
+                prev[nb.name] = decompose(nb, nbn, opts, beta=beta)["R"]
+        res = decompose(ref, nbs, opts, beta=beta, aggregate_from=prev, R_init=res["R"])
+        history += [dict(h, **{"pass": 2}) for h in res["history"]]
+    info.update(R=res["R"], pose=res["pose"], history=history, mask=ref.mask, geom=ref)
+    return info
+
+
+def run(ctx: StageContext, view: str) -> None:
+    import cv2
+    import numpy as np
+
+    from ..geometry.planes import grid_mesh
+    from ..io.images import write_image
+    from ..io.mesh import Mesh, read_ply, write_ply
+
+    cfg = ctx.config
+    ws = ctx.ws
+    loader = Loader(ctx)
+    planes = get_planes(ctx, loader)
+    opts = options(cfg)
+    img, _depth, wc, _wi, _wd = loader.raw(view)
+    H, W = img.shape[:2]
+    results, skipped = [], []
+    for refl in planes["reflectors"]:
+        n = int(loader.mask(view, refl).sum())
+        if n < cfg.min_mask_pixels:
+            continue
+        r = _decompose_reflector(loader, view, refl, opts, cfg)
+        (skipped if "discarded" in r else results).append(r)
+    report = {"reflector": None, "reflectors": [], "discarded": [
+        {k: v for k, v in r.items() if k in ("name", "discarded", "neighbours", "mask_pixels")}
+        for r in skipped], "work_size": [wc.width, wc.height]}
+    if not results:
+        ws.write_json(ws.view_file(view, "layers.json"), report)
+        return
+    # combine the reflectors of this view: beta (reflectance), R = beta I1, M1 pieces
+    beta_w = np.zeros((wc.height, wc.width))
+    R_w = np.zeros((wc.height, wc.width, 3))
+    verts, faces, off = [], [], 0
+    for r in sorted(results, key=lambda r: r["mask_pixels"]):
+        m = r["mask"]
+        beta_w[m] = r["beta"]
+        R_w[m] = r["R"][m]
+        g = r["geom"]
+        X1 = g.X1.copy()
+        pose = np.asarray(r["pose"])
+        if np.any(pose != 0):  # the optimised rigid transform of M1 (Eq. 7)
+            Rm = _rodrigues_np(pose[:3])
+            c = np.nanmean(X1[m & (g.D1 > 0)], axis=0)
+            X1 = (X1 - c) @ Rm.T + c + pose[3:]
+        v, f = grid_mesh(X1, np.where(m, g.D1, 0.0), step=cfg.mesh_step)
+        verts.append(v)
+        faces.append(f + off)
+        off += len(v)
+    if (wc.width, wc.height) != (W, H):
+        beta = cv2.resize(beta_w, (W, H), interpolation=cv2.INTER_NEAREST)
+        R = cv2.resize(R_w, (W, H), interpolation=cv2.INTER_LINEAR) * (beta > 0)[..., None]
+    else:
+        beta, R = beta_w, R_w
+    if any(r["mirror"] for r in results):  # mirror special case at full resolution: I1 = I
+        R = np.where((beta >= 1.0)[..., None], img, R)
+    R = np.clip(np.minimum(R, img), 0, None)
+    I0 = img - R  # Eq. 3: I = I0 + beta I1
+    I1 = np.where(beta[..., None] > 0, R / np.maximum(beta, 1e-6)[..., None], 0.0)
+    write_image(ws.path(ws.view_file(view, "I0.png")), np.clip(I0, 0, 1))
+    write_image(ws.path(ws.view_file(view, "I1.png")), np.clip(I1, 0, 1))
+    with ws.atomic_write(ws.view_file(view, "beta.npy")) as f:
+        np.save(f, beta.astype(np.float32))
+    M0 = read_ply(ws.path(ws.view_file(view, "mesh.ply")))  # M0: the refined-depth surface mesh
+    write_ply(ws.path(ws.view_file(view, "M0.ply")), Mesh(M0.vertices, M0.faces, normals=M0.normals))
+    write_ply(ws.path(ws.view_file(view, "M1.ply")),
+              Mesh(np.concatenate(verts), np.concatenate(faces)), comment="mirror-world geometry")
+    main = max(results, key=lambda r: r["mask_pixels"])
+    report["reflector"] = main["name"]
+    report["reflectors"] = [{k: v for k, v in r.items() if k not in ("R", "mask", "geom")}
+                            for r in results]
+    ws.write_json(ws.view_file(view, "layers.json"), report)
+
+
+def _rodrigues_np(w):
+    import numpy as np
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3)
+    k = np.asarray(w) / th
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * Kx + (1 - np.cos(th)) * Kx @ Kx
+
+
+STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",
+              config=ReflectionConfig, version="1", run=run, per_view=True,
+              inputs=inputs, view_inputs=view_inputs, view_outputs=view_outputs,
+              views=registered_views)

@@ -1,0 +1,163 @@
+"""2D non-rigid grid warp F_k' (Xu et al. §4.3.1, Eqs. 4-5), solved by Gauss-Newton.
+
+F(u) = u + sum_l theta_l(u) f_l (Eq. 4): offsets f_l on the (gx+1) x (gy+1) control vertices of a
+grid that uniformly covers the neighbour image (paper: 40 x 30 cells, 41 x 31 vertices), bilinear
+weights theta. The offsets minimise (Eq. 5)
+
+    sum_u || I_k'(F(w(u))) - I_k(u) ||^2 + w_r sum_l ||f_l||^2
+        + w_a sum_t || v1 - (v2 + alpha [[0, 1], [-1, 0]] (v3 - v2)) ||^2
+
+with w_r = 1.2, w_a = 0.5, the ARAP term over the two triangles of every cell (Igarashi et al.
+2005; alpha = the cell aspect ratio). The rest grid satisfies the ARAP term exactly, so it is a
+linear function of the offsets. Intensities are linear values in [0, 1].
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def grid_vertices(width: int, height: int, gx: int = 40, gy: int = 30) -> tuple[np.ndarray, float, float]:
+    """Rest positions (gy+1, gx+1, 2) of the control vertices covering pixel centres 0..W-1,
+    0..H-1; and the cell size (sx, sy)."""
+    sx, sy = (width - 1) / gx, (height - 1) / gy
+    xs, ys = np.meshgrid(np.arange(gx + 1) * sx, np.arange(gy + 1) * sy)
+    return np.stack([xs, ys], -1), sx, sy
+
+
+def bilinear_weights(p: np.ndarray, width: int, height: int, gx: int, gy: int):
+    """Eq. 4's theta: for (N, 2) positions, the 4 control-vertex indices (N, 4) (flat, row-major
+    over (gy+1, gx+1)) and weights (N, 4) of the cell containing each position (clamped)."""
+    p = np.asarray(p, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"positions must be (N, 2), got {p.shape}")
+    sx, sy = (width - 1) / gx, (height - 1) / gy
+    fx = np.clip(p[:, 0] / sx, 0, gx - 1e-9)
+    fy = np.clip(p[:, 1] / sy, 0, gy - 1e-9)
+    i, j = np.floor(fx).astype(np.int64), np.floor(fy).astype(np.int64)
+    ax, ay = fx - i, fy - j
+    n = gx + 1
+    idx = np.stack([j * n + i, j * n + i + 1, (j + 1) * n + i, (j + 1) * n + i + 1], 1)
+    w = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], 1)
+    return idx, w
+
+
+def apply_warp(p: np.ndarray, offsets: np.ndarray, width: int, height: int) -> np.ndarray:
+    """F(p) of Eq. 4 for (..., 2) positions with offsets (gy+1, gx+1, 2)."""
+    offsets = np.asarray(offsets, dtype=np.float64)
+    if offsets.ndim != 3 or offsets.shape[2] != 2:
+        raise ValueError(f"offsets must be (gy+1, gx+1, 2), got {offsets.shape}")
+    gy, gx = offsets.shape[0] - 1, offsets.shape[1] - 1
+    shape = np.shape(p)
+    flat = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+    idx, w = bilinear_weights(flat, width, height, gx, gy)
+    f = offsets.reshape(-1, 2)
+    return (flat + np.einsum("nk,nkc->nc", w, f[idx])).reshape(shape)
+
+
+def arap_matrix(gx: int, gy: int, sx: float, sy: float):
+    """Sparse (4 gx gy, 2 L) matrix A with A f = the ARAP residuals of Eq. 5 (two triangles per
+    cell; the rest grid has zero residual). Unknown order: (x0, y0, x1, y1, ...) per vertex."""
+    import scipy.sparse as sp
+
+    alpha = sx / sy  # Eq. 5: grid aspect ratio
+    n = gx + 1
+    rows, cols, vals = [], [], []
+    r = 0
+    Rm = np.array([[0.0, 1.0], [-1.0, 0.0]])
+    for j in range(gy):
+        for i in range(gx):
+            v00, v10, v01, v11 = j * n + i, j * n + i + 1, (j + 1) * n + i, (j + 1) * n + i + 1
+            # t1: v1 = v10, v2 = v00, v3 = v01 (right angle at v00); t2: v01, v11, v10
+            for v1, v2, v3 in ((v10, v00, v01), (v01, v11, v10)):
+                # residual = f1 - f2 - alpha R (f3 - f2) = f1 + (alpha R - I) f2 - alpha R f3
+                for c in range(2):
+                    for d in range(2):
+                        coef1 = 1.0 if c == d else 0.0
+                        coef2 = alpha * Rm[c, d] - coef1
+                        coef3 = -alpha * Rm[c, d]
+                        for v, coef in ((v1, coef1), (v2, coef2), (v3, coef3)):
+                            if coef != 0.0:
+                                rows.append(r + c)
+                                cols.append(2 * v + d)
+                                vals.append(coef)
+                r += 2
+    L = (gx + 1) * (gy + 1)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(r, 2 * L))
+
+
+def _sample(img: np.ndarray, p: np.ndarray) -> np.ndarray:
+    import cv2
+
+    n = len(p)
+    cols = 1024  # remap maps must stay below SHRT_MAX rows: lay the points out as a 2D map
+    m = np.zeros((-(-n // cols) * cols, 2), np.float32)
+    m[:n] = p
+    m = m.reshape(-1, cols, 2)
+    out = cv2.remap(img.astype(np.float32), m[..., 0], m[..., 1], cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, img.shape[2] if img.ndim == 3 else 1)[:n]
+
+
+def solve_grid_warp(ref: np.ndarray, nb: np.ndarray, flow: np.ndarray, valid: np.ndarray, *,
+                    gx: int = 40, gy: int = 30, w_r: float = 1.2, w_a: float = 0.5,
+                    iterations: int = 5) -> tuple[np.ndarray, list[float]]:
+    """Gauss-Newton solution of Eq. 5.
+
+    ref: I_k (H, W, C); nb: I_k' (H', W', C); flow: w_k'(u, M0) (H, W, 2) positions in the
+    neighbour image; valid: (H, W) pixels that take part. Returns the offsets (gy+1, gx+1, 2) and
+    the energy before each iteration and after the last (len iterations + 1).
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    ref = np.asarray(ref, np.float64)
+    nb = np.asarray(nb, np.float64)
+    if ref.ndim == 2:
+        ref = ref[..., None]
+    if nb.ndim == 2:
+        nb = nb[..., None]
+    H, W = ref.shape[:2]
+    if flow.shape != (H, W, 2) or np.asarray(valid).shape != (H, W) or nb.shape[2] != ref.shape[2]:
+        raise ValueError(f"ref (H, W, C) {ref.shape}, nb {nb.shape}, flow {flow.shape} and "
+                         f"valid {np.asarray(valid).shape} do not match")
+    Hn, Wn, C = nb.shape
+    L = (gx + 1) * (gy + 1)
+    f = np.zeros((L, 2))
+    _, sx, sy = grid_vertices(Wn, Hn, gx, gy)
+    A = arap_matrix(gx, gy, sx, sy)
+    AtA = (A.T @ A).tocsr()
+    sel = np.asarray(valid, bool) & np.all(np.isfinite(flow), axis=2)
+    p = flow[sel]
+    target = ref[sel]
+    N = len(p)
+    energies: list[float] = []
+    if N == 0:
+        return f.reshape(gy + 1, gx + 1, 2), [0.0]
+    import cv2
+    gxi = np.stack([cv2.Sobel(nb[..., c].astype(np.float32), cv2.CV_32F, 1, 0, ksize=3) / 8
+                    for c in range(C)], -1)
+    gyi = np.stack([cv2.Sobel(nb[..., c].astype(np.float32), cv2.CV_32F, 0, 1, ksize=3) / 8
+                    for c in range(C)], -1)
+    idx, w = bilinear_weights(p, Wn, Hn, gx, gy)
+
+    def energy(fv, res):
+        return float((res ** 2).sum() + w_r * (fv ** 2).sum() + w_a * fv.reshape(-1) @ (AtA @ fv.reshape(-1)))
+
+    for it in range(iterations + 1):
+        q = p + np.einsum("nk,nkc->nc", w, f[idx])
+        res = _sample(nb, q) - target  # (N, C)
+        energies.append(energy(f, res))
+        if it == iterations:
+            break
+        gxs, gys = _sample(gxi, q), _sample(gyi, q)  # (N, C)
+        # Jacobian rows (N*C) x cols (2L): d res / d f_l = grad I_k'(q) * theta_l
+        rows = np.repeat(np.arange(N * C), 8)
+        colx = (2 * idx)[:, None, :].repeat(C, 1)  # (N, C, 4)
+        cols = np.stack([colx, colx + 1], -1).reshape(-1)  # (N, C, 4, 2)
+        vals = (w[:, None, :, None] * np.stack([gxs, gys], -1)[:, :, None, :]).reshape(-1)
+        J = sp.csr_matrix((vals, (rows, cols)), shape=(N * C, 2 * L))
+        fv = f.reshape(-1)
+        lhs = (J.T @ J + w_r * sp.identity(2 * L) + w_a * AtA).tocsc()
+        rhs = -(J.T @ res.reshape(-1) + w_r * fv + w_a * (AtA @ fv))
+        f = (fv + spsolve(lhs, rhs)).reshape(L, 2)
+    return f.reshape(gy + 1, gx + 1, 2), energies

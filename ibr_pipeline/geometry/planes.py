@@ -1,0 +1,232 @@
+"""Planes for reflection decomposition (Xu et al. §4.3.1): RANSAC planes on the global mesh G,
+mirroring through a plane, the per-view reflector mask beta (the plane's extent projected into a
+view, with occlusion), the mirror-world ("planar reflection") points of a view and grid meshes.
+
+Planes are `n . x + d = 0` in world coordinates with unit `n` (scene.py). All functions are pure
+and shape-checked; they raise ValueError naming the offending shape.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..scene import Camera
+
+
+def _plane(plane) -> np.ndarray:
+    p = np.asarray(plane, dtype=np.float64).reshape(-1)
+    if p.shape != (4,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"plane must be 4 finite numbers (n, d), got shape {p.shape}")
+    n = np.linalg.norm(p[:3])
+    if n < 1e-12:
+        raise ValueError("plane normal is zero")
+    return p / n
+
+
+def mirror_matrix(plane) -> np.ndarray:
+    """4x4 Householder reflection through the plane n.x + d = 0: x' = x - 2 (n.x + d) n."""
+    p = _plane(plane)
+    n, d = p[:3], p[3]
+    M = np.eye(4)
+    M[:3, :3] -= 2.0 * np.outer(n, n)
+    M[:3, 3] = -2.0 * d * n
+    return M
+
+
+def fit_plane(points: np.ndarray) -> np.ndarray:
+    """Least-squares plane (total least squares, SVD) through (N, 3) points -> (a, b, c, d)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
+        raise ValueError(f"points must be (N>=3, 3), got {pts.shape}")
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
+    n = vt[2]
+    return np.r_[n, -n @ c]
+
+
+def plane_basis(plane) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(origin on the plane, u axis, v axis): an orthonormal frame of the plane."""
+    p = _plane(plane)
+    n = p[:3]
+    origin = -p[3] * n
+    a = np.eye(3)[np.argmin(np.abs(n))]
+    u = np.cross(n, a)
+    u /= np.linalg.norm(u)
+    return origin, u, np.cross(n, u)
+
+
+def ransac_planes(points: np.ndarray, *, distance: float = 0.008, min_points: int = 200,
+                  max_planes: int = 12, iterations: int = 1000, cluster_eps: float = 0.06,
+                  min_cluster_area: float = 0.05, seed: int = 0) -> list[dict]:
+    """Planar segments of a point set (samples of G): repeated RANSAC (open3d `segment_plane`),
+    each plane refined by least squares on its inliers and split into connected pieces
+    (open3d DBSCAN). Returns [{plane (4,), polygon (K, 3) convex hull of the piece, area, count}].
+    """
+    import open3d as o3d
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {pts.shape}")
+    o3d.utility.random.seed(int(seed))
+    rest = pts
+    out = []
+    for _ in range(max_planes):
+        if len(rest) < min_points:
+            break
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
+        model, idx = pc.segment_plane(distance, 3, iterations)
+        idx = np.asarray(idx)
+        if len(idx) < min_points:
+            break
+        inl = rest[idx]
+        plane = fit_plane(inl)
+        keep = np.abs(inl @ plane[:3] + plane[3]) < distance
+        inl = inl[keep]
+        plane = fit_plane(inl)
+        rest = np.delete(rest, idx, axis=0)
+        labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(inl))
+                            .cluster_dbscan(cluster_eps, 8))
+        origin, u, v = plane_basis(plane)
+        for lab in range(labels.max() + 1 if len(labels) else 0):
+            piece = inl[labels == lab]
+            if len(piece) < min_points // 4:
+                continue
+            uv = np.c_[(piece - origin) @ u, (piece - origin) @ v]
+            try:
+                hull = ConvexHull(uv)
+            except QhullError:
+                continue
+            if hull.volume < min_cluster_area:  # 2D hull "volume" is its area
+                continue
+            poly = origin + np.outer(uv[hull.vertices, 0], u) + np.outer(uv[hull.vertices, 1], v)
+            out.append({"plane": fit_plane(piece), "polygon": poly, "area": float(hull.volume),
+                        "count": int(len(piece))})
+    return out
+
+
+def ray_plane_hits(camera: Camera, plane) -> tuple[np.ndarray, np.ndarray]:
+    """For every pixel: world point where its ray meets the plane (H, W, 3) and that point's
+    z-depth (H, W) in the camera (<= 0 or inf where the plane is behind / parallel)."""
+    p = _plane(plane)
+    uv = camera.pixel_grid().reshape(-1, 2)
+    d_cam = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(camera.K).T  # z = 1 rays
+    d_world = d_cam @ camera.R
+    c = camera.center
+    denom = d_world @ p[:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = -(p[:3] @ c + p[3]) / denom  # ray parameter = z-depth since d_cam has z = 1
+    z = np.where(np.isfinite(z), z, np.inf)
+    X = c + d_world * z[:, None]
+    H, W = camera.height, camera.width
+    return X.reshape(H, W, 3), z.reshape(H, W)
+
+
+def polygon_contains(plane, polygon: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N,) bool: are (N, 3) points on the plane inside the (K, 3) polygon (in plane coords)?"""
+    from matplotlib.path import Path as MplPath
+
+    poly = np.asarray(polygon, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    if poly.ndim != 2 or poly.shape[1] != 3 or len(poly) < 3:
+        raise ValueError(f"polygon must be (K>=3, 3), got {poly.shape}")
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {pts.shape}")
+    origin, u, v = plane_basis(plane)
+    to2 = lambda a: np.c_[(a - origin) @ u, (a - origin) @ v]  # noqa: E731
+    return MplPath(to2(poly)).contains_points(to2(pts))
+
+
+def reflector_mask(camera: Camera, plane, polygon: np.ndarray | None, depth: np.ndarray,
+                   rel_tol: float = 0.02) -> np.ndarray:
+    """beta support of one reflector in one view (§4.3.1: the plane's extent projected into the
+    image): pixels whose ray meets the plane inside `polygon` in front of the camera and whose
+    first-surface depth agrees with the plane (|D - z_plane| < rel_tol * z_plane), so occluders in
+    front of the reflector are excluded. Without a polygon the plane is unbounded."""
+    depth = np.asarray(depth)
+    if depth.shape != (camera.height, camera.width):
+        raise ValueError(f"depth must be ({camera.height}, {camera.width}), got {depth.shape}")
+    X, z = ray_plane_hits(camera, plane)
+    p = _plane(plane)
+    facing = (camera.center @ p[:3] + p[3]) > 0  # camera on the reflecting side (n points to it)
+    ok = np.isfinite(z) & (z > 1e-3) & (depth > 0) & (np.abs(depth - z) < rel_tol * z)
+    if not facing:
+        return np.zeros_like(ok)
+    if polygon is not None and ok.any():
+        inside = np.zeros(ok.size, bool)
+        flat = ok.reshape(-1)
+        inside[flat] = polygon_contains(plane, polygon, X.reshape(-1, 3)[flat])
+        ok = inside.reshape(ok.shape)
+    return ok
+
+
+def mirror_points(camera: Camera, plane, mask: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
+    """The planar-reflection geometry of a view (§4.3.1 initialisation of M1): for each pixel in
+    `mask`, the reflected ray from the plane is cast into G (open3d RaycastingScene `scene`); the
+    mirror-world point lies on the camera ray at the total path length. Returns (H, W, 3) world
+    points (NaN where there is none) and their (H, W) z-depth in this camera (0 where none)."""
+    from ..render.raycast import cast
+
+    H, W = camera.height, camera.width
+    mask = np.asarray(mask, bool)
+    if mask.shape != (H, W):
+        raise ValueError(f"mask must be ({H}, {W}), got {mask.shape}")
+    p = _plane(plane)
+    X, z = ray_plane_hits(camera, p)
+    pts = np.full((H, W, 3), np.nan)
+    zd = np.zeros((H, W))
+    sel = mask & np.isfinite(z) & (z > 0)
+    if not sel.any():
+        return pts, zd
+    c = camera.center
+    P = X[sel]
+    r = P - c
+    rng0 = np.linalg.norm(r, axis=1)
+    r /= rng0[:, None]
+    r_ref = r - 2.0 * (r @ p[:3])[:, None] * p[:3]
+    hit = cast(scene, P + 1e-4 * r_ref, r_ref)["t_hit"]
+    good = np.isfinite(hit)
+    Xm = c + r * (rng0 + hit + 1e-4)[:, None]
+    Xm[~good] = np.nan
+    pts[sel] = Xm
+    zz = np.where(good, z[sel] * (rng0 + hit) / rng0, 0.0)
+    zd[sel] = zz
+    return pts, zd
+
+
+def grid_mesh(points: np.ndarray, depth: np.ndarray, step: int = 1,
+              max_rel_jump: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Triangle mesh over an (H, W, 3) grid of world points: two triangles per pixel square
+    (Xu §4.2.3) on every `step`-th pixel, skipping squares with a corner of depth <= 0 / NaN or a
+    z-depth jump larger than `max_rel_jump` x the smaller depth (occlusion edges are cut).
+    Returns (V, 3) float32 vertices and (F, 3) int32 faces."""
+    pts = np.asarray(points, dtype=np.float64)
+    depth = np.asarray(depth, dtype=np.float64)
+    if pts.ndim != 3 or pts.shape[2] != 3 or depth.shape != pts.shape[:2]:
+        raise ValueError(f"points must be (H, W, 3) and depth (H, W), got {pts.shape}, {depth.shape}")
+    P = pts[::step, ::step]
+    D = depth[::step, ::step]
+    V = (D > 0) & np.isfinite(D) & np.all(np.isfinite(P), axis=2)
+    h, w = V.shape
+    idx = -np.ones((h, w), np.int64)
+    idx[V] = np.arange(V.sum())
+    verts = P[V]
+    if h < 2 or w < 2 or len(verts) == 0:
+        return verts.astype(np.float32), np.zeros((0, 3), np.int32)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    na, nb, nc, nd = D[:-1, :-1], D[:-1, 1:], D[1:, :-1], D[1:, 1:]
+    rel = lambda x, y: np.abs(x - y) <= max_rel_jump * np.minimum(x, y)  # noqa: E731
+    ok1 = (a >= 0) & (b >= 0) & (c >= 0) & rel(na, nb) & rel(na, nc) & rel(nb, nc)
+    ok2 = (b >= 0) & (d >= 0) & (c >= 0) & rel(nb, nd) & rel(nd, nc) & rel(nb, nc)
+    f1 = np.stack([a[ok1], c[ok1], b[ok1]], 1)
+    f2 = np.stack([b[ok2], c[ok2], d[ok2]], 1)
+    return verts.astype(np.float32), np.concatenate([f1, f2]).astype(np.int32)
+
+
+def depth_points(camera: Camera, depth: np.ndarray) -> np.ndarray:
+    """(H, W, 3) world points of a z-depth map (NaN where depth <= 0 or not finite)."""
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.shape != (camera.height, camera.width):
+        raise ValueError(f"depth must be ({camera.height}, {camera.width}), got {depth.shape}")
+    uv = camera.pixel_grid().reshape(-1, 2)
+    X = camera.unproject(uv, np.where(depth > 0, depth, np.nan).reshape(-1))
+    return X.reshape(depth.shape + (3,))

@@ -1,0 +1,142 @@
+"""Tests of stage `reflection` (issue #6, Xu et al. §4.3) against synthetic ground truth."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ibr_pipeline.geometry.grid_warp import apply_warp, solve_grid_warp
+from ibr_pipeline.geometry.planes import fit_plane, mirror_matrix, reflector_mask
+
+
+def test_mirror_matrix_is_an_involution_fixing_the_plane():
+    plane = np.array([1.0, 2.0, -0.5, 0.7])
+    M = mirror_matrix(plane)
+    assert np.allclose(M @ M, np.eye(4))
+    n = plane[:3] / np.linalg.norm(plane[:3])
+    d = plane[3] / np.linalg.norm(plane[:3])
+    p = -d * n + np.cross(n, [0, 0, 1.0])  # a point on the plane
+    assert np.allclose((M @ np.r_[p, 1])[:3], p)
+    with pytest.raises(ValueError):
+        mirror_matrix([0, 0, 0, 1])
+
+
+def test_fit_plane_recovers_a_noisy_plane():
+    rng = np.random.default_rng(0)
+    uv = rng.uniform(-1, 1, (500, 2))
+    pts = np.c_[uv, 0.76 + 0.001 * rng.standard_normal(500)]
+    p = fit_plane(pts)
+    p = p * np.sign(p[2])
+    assert np.degrees(np.arccos(p[2])) < 0.5 and abs(p[3] + 0.76) < 2e-3
+
+
+def test_grid_warp_reduces_a_smooth_misalignment():
+    """Eq. 5: the GN warp absorbs a sub-pixel error of the flow and lowers the energy."""
+    import cv2
+    rng = np.random.default_rng(1)
+    H, W = 90, 120
+    tex = cv2.GaussianBlur(rng.uniform(0, 1, (H, W, 3)).astype(np.float32), (0, 0), 2.0)
+    shift = np.array([1.2, -0.7])
+    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    ref = cv2.warpAffine(tex, M, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    # ref(u) = tex(u - shift): the true flow into tex is u - shift; we give the identity instead
+    u = np.stack(np.meshgrid(np.arange(W), np.arange(H)), -1).astype(np.float64)
+    valid = np.zeros((H, W), bool)
+    valid[8:-8, 8:-8] = True
+    offs, energies = solve_grid_warp(ref, tex, u, valid, gx=8, gy=6, w_r=1.2, w_a=0.5, iterations=5)
+    assert energies[-1] < energies[0]
+    warped = apply_warp(u[valid], offs, W, H)
+    err = np.abs(warped - (u[valid] - shift)).mean()
+    assert err < np.abs(shift).mean(), err  # closer to the true flow than the given one
+
+
+@pytest.fixture(scope="module")
+def tiny_ws(tiny_scene, tmp_path_factory):
+    from ibr_pipeline.bench.reflection import make_gt_workspace, run_stage
+    scene = tiny_scene[0]
+    ws = make_gt_workspace(scene, tmp_path_factory.mktemp("refl") / "ws")
+    res = run_stage(ws, {"detect": False})
+    assert res[0].result == "ran", res
+    return scene, ws
+
+
+def test_reflector_mask_matches_gt_mirror(tiny_ws):
+    from ibr_pipeline.scene import cameras_from_json, read_reflectors
+    from ibr_pipeline.bench.reflection import read_gt
+    scene, _ = tiny_ws
+    cams = cameras_from_json(scene / "cameras.json")
+    mirror = [r for r in read_reflectors(scene / "reflectors.json") if r.name == "mirror"][0]
+    ious = []
+    for name, cam in cams.items():
+        depth = np.load(scene / "gt" / "geom" / f"{Path(name).stem}.npz")["depth"]
+        m = reflector_mask(cam, mirror.plane, np.asarray(mirror.polygon), depth)
+        gt = read_gt(scene, name)[2] > 0.99
+        if gt.sum() > 100:
+            ious.append((m & gt).sum() / (m | gt).sum())
+    assert ious and min(ious) > 0.9, ious
+
+
+def test_stage_layers_against_ground_truth(tiny_ws):
+    from ibr_pipeline.bench.reflection import read_gt
+    from ibr_pipeline.io.images import read_image
+    from ibr_pipeline.io.mesh import read_ply
+    from ibr_pipeline.metrics import psnr
+    from ibr_pipeline.scene import cameras_from_json
+    scene, ws = tiny_ws
+    cams = cameras_from_json(scene / "cameras.json")
+    planes = json.loads(ws.path("reflection/planes.json").read_text())
+    assert {r["name"] for r in planes["reflectors"]} >= {"mirror"}
+    seen = 0
+    for name, cam in cams.items():
+        rep = json.loads(ws.path(ws.view_file(name, "layers.json")).read_text())
+        if rep["reflector"] is None:
+            assert not ws.path(ws.view_file(name, "I0.png")).exists()
+            continue
+        seen += 1
+        I = read_image(scene / "images" / name)
+        I0 = read_image(ws.path(ws.view_file(name, "I0.png")))
+        I1 = read_image(ws.path(ws.view_file(name, "I1.png")))
+        beta = np.load(ws.path(ws.view_file(name, "beta.npy")))
+        assert beta.shape == I.shape[:2] and beta.dtype == np.float32
+        # Eq. 3 holds in the stored values (8-bit rounding of two layers)
+        assert np.abs(I0 + beta[..., None] * I1 - I).max() < 3 / 255
+        g0, g1, gb = read_gt(scene, name)
+        mir = np.isclose(beta, 1.0) & (gb > 0.99)
+        if mir.sum() > 100:  # mirror special case: I1 = I, I0 = 0
+            assert psnr(I1, g1, mir) > 30
+            assert np.abs(I0[mir]).max() < 2 / 255
+        # M1 is mirror-world geometry: projected into this view it lands on the beta support
+        M1 = read_ply(ws.path(ws.view_file(name, "M1.ply")))
+        uv, z = cam.project(M1.vertices.astype(np.float64))
+        assert np.all(z > 0)
+        x, y = np.rint(uv).astype(int).T
+        ok = (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
+        assert ok.mean() > 0.99 and (beta[y[ok], x[ok]] > 0).mean() > 0.95
+        assert read_ply(ws.path(ws.view_file(name, "M0.ply"))).faces.shape[0] > 0
+    assert seen >= 1
+
+
+def test_bad_input_and_config(tiny_ws, tmp_path):
+    from ibr_pipeline.config import build_config
+    from ibr_pipeline.errors import ConfigError, InputError
+    from ibr_pipeline.runner import StageContext
+    from ibr_pipeline.stages.reflection import Loader, ReflectionConfig
+    with pytest.raises(ConfigError):
+        build_config(ReflectionConfig, "reflection", {"work_scale": 5.0})
+    with pytest.raises(ConfigError):
+        build_config(ReflectionConfig, "reflection", {"min_neighbours": 9, "max_neighbours": 2})
+    scene, ws = tiny_ws
+    import shutil
+    from ibr_pipeline.workspace import Workspace
+    bad = tmp_path / "bad"
+    shutil.copytree(ws.root, bad)
+    bws = Workspace(bad)
+    name = bws.scene().names[0]
+    d = np.load(bws.path(bws.view_file(name, "depth.npy")))
+    d[3, 3] = np.nan
+    np.save(bws.path(bws.view_file(name, "depth.npy")), d)
+    ctx = StageContext(bws, "reflection", build_config(ReflectionConfig, "reflection", {}), bws.scene())
+    with pytest.raises(InputError, match="depth.npy"):
+        Loader(ctx).raw(name)
