@@ -1,15 +1,131 @@
-"""`ibr render`: not built yet (issue #7). The issue replaces this module."""
+"""`ibr render WS --cameras FILE | --heldout | --path fly [--supersample] [--out DIR]` (issue #7).
+
+Renders new views of a workspace with the two-layer renderer (`render/ibr.py`): PNG frames (linear
+8-bit, scene.py convention), an MP4 (display sRGB) when there are two frames or more, and
+`timings.json` (per-frame milliseconds, selected views). Light at import time.
+"""
 from __future__ import annotations
 
+import argparse
 import sys
+from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("render", help="render new views of a workspace [not built yet]")
-    p.add_argument("rest", nargs="*", help="arguments (not built yet)")
-    p.set_defaults(func=_not_built)
+    p = sub.add_parser("render", help="render new views of a workspace (PNGs, MP4, timings)",
+                       description="Render novel views with view selection, fuzzy depth test and "
+                       "two-layer blending (Xu et al. 2021 §5.1). Needs view_mesh outputs; uses "
+                       "the reflection layers when the reflection stage has run.")
+    p.add_argument("workspace", type=Path, help="workspace folder")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--cameras", type=Path, metavar="FILE", help="cameras.json of the views to render")
+    g.add_argument("--heldout", action="store_true",
+                   help="the input's held-out cameras (gt/test_cameras.json); leave-one-out "
+                   "capture views when there are none")
+    g.add_argument("--path", choices=("fly",), help="fly: gt/flythrough_cameras.json, or a smooth "
+                   "path through the registered cameras")
+    p.add_argument("--out", type=Path, help="output folder (default WS/renders/cli_<what>)")
+    p.add_argument("--supersample", action="store_true",
+                   help="render at low resolution and upsample with DSRNet (needs the supersample stage)")
+    p.add_argument("--single-layer", action="store_true", help="decomposition off (baseline)")
+    p.add_argument("--frames", type=int, default=0, help="render at most N frames (0 = all)")
+    p.add_argument("--fps", type=float, default=24.0, help="video frame rate (default 24)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=main)
 
 
-def _not_built(args) -> int:
-    print("ibr: error: `ibr render` is not built yet (issue #7)", file=sys.stderr)
+def _err(msg: str) -> int:
+    print(f"ibr render: error: {msg}", file=sys.stderr)
     return 2
+
+
+def _supersampler(ws):
+    try:
+        from ..nn.infer import SuperSampler
+    except ImportError as e:
+        return None, f"--supersample needs ibr_pipeline.nn.infer.SuperSampler (issue #8): {e}"
+    if not ws.path("nn/dsrnet.pt").is_file():
+        return None, f"{ws.path('nn/dsrnet.pt')}: no trained DSRNet (run `ibr supersample {ws.root}`)"
+    s = SuperSampler.load(ws)
+    s.reset()
+    return s, ""
+
+
+def main(args: argparse.Namespace) -> int:
+    import json
+    import logging
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from ..errors import InputError
+    from ..io.images import write_image
+    from ..runner import StageContext
+    from ..scene import cameras_from_json, cameras_to_json
+    from ..stages import render_views as rv
+    from ..workspace import Workspace, atomic_path
+    from .ibr import IBRModel
+    from .video import write_mp4
+
+    log = logging.getLogger("ibr_pipeline.render")
+    ws = Workspace(args.workspace)
+    if args.frames < 0 or not (0 < args.fps <= 240):
+        raise InputError("--frames must be >= 0 and --fps in (0, 240]")
+    from ..config import build_config
+    cfg = build_config(rv.RenderViewsConfig, "render_views", ws.config().get("render_views", {}))
+    ctx = StageContext(ws, "render_views", cfg, ws.scene())
+    if args.cameras is not None:
+        cams = list(cameras_from_json(args.cameras).items())
+        excl, what, sequential = [None] * len(cams), "cameras", False
+    else:
+        sets = rv.render_sets(ctx)
+        key = "test" if args.heldout else "fly"
+        if key not in sets:
+            raise InputError(f"{ws.root}: no camera path (need >= 2 registered views)")
+        cams, excl = sets[key]["cameras"], sets[key]["exclude"]
+        what, sequential = ("heldout", False) if args.heldout else ("fly", True)
+        if args.heldout and sets[key]["source"] == "leave_one_out":
+            log.info("render: no gt/test_cameras.json: rendering every capture view left out")
+    if args.frames:
+        cams, excl = cams[:args.frames], excl[:args.frames]
+    sampler = None
+    if args.supersample:
+        sampler, why = _supersampler(ws)
+        if sampler is None:
+            return _err(why)
+    out = args.out or ws.path(f"renders/cli_{what}")
+    model = IBRModel.load(ws, layers=not args.single_layer, settings=rv.render_settings(cfg))
+    frames, rows, prev = [], [], None
+    try:
+        for i, ((name, cam), ex) in enumerate(tqdm(list(zip(cams, excl)), desc="render",
+                                                   unit="frame", disable=args.no_progress)):
+            if sampler is not None:
+                scale = int(getattr(sampler, "scale", 2))
+                lr = cam.resized(cam.width // scale, cam.height // scale)
+                f = model.render(lr, exclude=() if ex is None else (ex,),
+                                 previous=prev if sequential else None)
+                color = np.asarray(sampler(f.color, f.depth, lr), dtype=np.float32)
+            else:
+                f = model.render(cam, exclude=() if ex is None else (ex,),
+                                 previous=prev if sequential else None)
+                color = f.color
+            prev = f
+            write_image(out / f"{i:04d}.png", color)
+            frames.append(color)
+            rows.append({"index": i, "name": name, "ms": round(f.ms, 3), "selected": f.selected,
+                         **{k: round(v, 3) for k, v in f.timings.items()}})
+    finally:
+        model.release()
+    ms = [r["ms"] for r in rows]
+    with atomic_path(out / "timings.json") as tmp:
+        tmp.write_text(json.dumps({"what": what, "supersample": bool(sampler),
+                                   "single_layer": args.single_layer,
+                                   "median_ms": float(np.median(ms)) if ms else None,
+                                   "frames": rows}, indent=1))
+    with atomic_path(out / "cameras.json") as tmp:
+        tmp.write_text(cameras_to_json(dict(cams)))
+    if len(frames) >= 2:
+        write_mp4(out / "video.mp4", frames, fps=args.fps)
+    print(f"{len(frames)} frames in {out} (median {np.median(ms):.1f} ms/frame)"
+          + (f", video {out / 'video.mp4'}" if len(frames) >= 2 else ""))
+    return 0

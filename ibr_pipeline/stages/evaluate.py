@@ -1,6 +1,261 @@
-"""Stage `evaluate`: held-out metrics, charts and videos. Not built yet (issues #7 and #10)."""
+"""Stage `evaluate`: held-out metrics, side-by-sides, a chart and the fly-through video.
+
+Reads `renders/test` (+ `test_single`, `fly`, `fly_single`) of `render_views` and the input's
+ground truth. Methods compared on the same cameras:
+  ours     two-layer rendering of the reconstructed representation (renders/test)
+  single   the same renderer with the decomposition off (renders/test_single; ~InsideOut)
+  oracle   the same renderer on the representation built from GT depth and GT layers
+           (`render/oracle.py`; synthetic inputs only) — the ceiling of the reconstruction stages
+PSNR/SSIM/FLIP (`metrics`) over the whole image and inside reflectors (held-out views: GT material
+with kr > 0 from gt/test/geom; leave-one-out views: GT beta > 0, or the reflection stage's beta when
+there is no GT). Temporal stability on the fly-through: mean absolute frame-to-frame change of
+ours vs the GT video, and the error of that change (flicker).
+Outputs: eval/metrics.json (`summary` = the headline numbers), eval/metrics.png (bar chart),
+eval/side_by_side/NNNN.png (ours | GT | single-layer | error ×4; display sRGB), eval/fly.mp4.
+"""
 from __future__ import annotations
 
-from .common import planned
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
 
-STAGE = planned('evaluate', 'held-out metrics, charts and videos', 'issues #7 and #10')
+from ..config import StageConfig, param
+from ..errors import InputError
+from ..runner import Stage, StageContext
+
+log = logging.getLogger("ibr_pipeline.evaluate")
+
+
+@dataclass(frozen=True)
+class EvaluateConfig(StageConfig):
+    flip: bool = param(True, "compute FLIP (slowest metric)")
+    oracle: bool = param(True, "render the GT-built oracle representation (synthetic inputs)")
+    fps: float = param(24.0, "fly-through video frame rate", min=1.0, max=240.0)
+
+
+def _set_cameras(ctx: StageContext, s: str) -> dict:
+    from ..scene import cameras_from_json
+    p = ctx.ws.path(f"renders/{s}/cameras.json")
+    return cameras_from_json(p) if p.is_file() else {}
+
+
+def _gt_image_key(ctx: StageContext, s: str, name: str, source: str) -> str | None:
+    if source == "heldout":
+        return f"input/gt/test/images/{name}"
+    if source == "flythrough":
+        return f"input/gt/flythrough/images/{name}"
+    if source == "leave_one_out":
+        return ctx.scene.view(name).image
+    return None
+
+
+def _source(ctx: StageContext, s: str) -> str:
+    p = ctx.ws.path(f"renders/{s}/timings.json")
+    try:
+        return json.loads(p.read_text()).get("source", "") if p.is_file() else ""
+    except (OSError, json.JSONDecodeError):
+        raise InputError(f"{p}: malformed JSON") from None
+
+
+def inputs(ctx: StageContext) -> list[str]:
+    keys = ["renders/test/cameras.json", "renders/test/timings.json"]
+    for s in ("test", "test_single", "fly", "fly_single"):
+        cams = _set_cameras(ctx, s)
+        if not cams:
+            continue
+        keys += [f"renders/{s}/cameras.json"] if s != "test" else []
+        keys += [f"renders/{s}/{i:04d}.png" for i in range(len(cams))]
+        src = _source(ctx, s)
+        if s in ("test", "fly"):
+            keys += [k for n in cams if (k := _gt_image_key(ctx, s, n, src))
+                     and ctx.ws.path(k).is_file()]
+    return keys
+
+
+def outputs(ctx: StageContext) -> list[str]:
+    n = len(_set_cameras(ctx, "test"))
+    out = ["eval/metrics.json", "eval/metrics.png"]
+    out += [f"eval/side_by_side/{i:04d}.png" for i in range(n)]
+    if _set_cameras(ctx, "fly"):
+        out.append("eval/fly.mp4")
+    return out
+
+
+def _reflector_mask(ctx: StageContext, name: str, source: str, shape):
+    """GT reflector mask of a test camera (None when unknown)."""
+    import numpy as np
+
+    from ..io.images import read_image
+    ws = ctx.ws
+    if source == "heldout":
+        geom = ws.path(f"input/gt/test/geom/{Path(name).stem}.npz")
+        scene = ws.path("input/gt/scene.json")
+        if geom.is_file() and scene.is_file():
+            kinds = [m["index"] for m in json.loads(scene.read_text()).get("materials", [])
+                     if m.get("kr", 0) > 0]
+            with np.load(geom) as z:
+                return np.isin(z["material"], kinds)
+        return None
+    if source == "leave_one_out":
+        p = ws.path(f"input/gt/beta/{Path(name).stem}.png")
+        if p.is_file():
+            return read_image(p)[..., 0] > 0
+        p = ws.path(f"{ws.view_dir(name)}/beta.npy")
+        if p.is_file():
+            b = np.load(p)
+            return b > 0 if b.shape == shape else None
+    return None
+
+
+def _scores(ref, img, mask, with_flip: bool) -> dict:
+    from .. import metrics
+    m = metrics.all_metrics(ref, img, mask, with_flip=with_flip)
+    return {k: float(v) for k, v in m.items()}
+
+
+def _mean(rows: list[dict]) -> dict:
+    import numpy as np
+    keys = sorted({k for r in rows for k in r})
+    out = {}
+    for k in keys:
+        vals = np.array([r.get(k, np.nan) for r in rows], dtype=np.float64)
+        vals = vals[np.isfinite(vals)]
+        out[k] = float(vals.mean()) if len(vals) else None
+    return out
+
+
+def temporal(frames: list, gt: list | None) -> dict:
+    """Fly-through stability: mean |R_t − R_{t−1}| of ours (and of the GT video), and the mean
+    |(R_t − R_{t−1}) − (G_t − G_{t−1})| flicker error against the GT video."""
+    import numpy as np
+    if len(frames) < 2:
+        return {}
+    d = [np.abs(b - a).mean() for a, b in zip(frames, frames[1:])]
+    out = {"frame_change": float(np.mean(d))}
+    if gt is not None and len(gt) == len(frames):
+        dg = [np.abs(b - a).mean() for a, b in zip(gt, gt[1:])]
+        out["gt_frame_change"] = float(np.mean(dg))
+        out["flicker_error"] = float(np.mean([np.abs((b - a) - (gb - ga)).mean() for a, b, ga, gb
+                                              in zip(frames, frames[1:], gt, gt[1:])]))
+    return out
+
+
+def run(ctx: StageContext) -> None:
+    import numpy as np
+
+    from ..io.images import read_image, write_image
+    from ..render.video import to_display, write_mp4
+
+    ws, cfg = ctx.ws, ctx.config
+    test = _set_cameras(ctx, "test")
+    if not test:
+        raise InputError(f"{ws.path('renders/test/cameras.json')}: no test renders (run render_views)")
+    source = _source(ctx, "test")
+    single = _set_cameras(ctx, "test_single")
+    oracle = _oracle_model(ctx) if cfg.oracle and source in ("heldout", "leave_one_out") else None
+    rows = {"ours": [], "single": [], "oracle": []}
+    per_view = []
+    for i, (name, cam) in enumerate(test.items()):
+        key = _gt_image_key(ctx, "test", name, source)
+        ref = read_image(ws.path(key))
+        ours = read_image(ws.path(f"renders/test/{i:04d}.png"))
+        if ref.shape != ours.shape:
+            raise InputError(f"{ws.path(key)}: ground truth is {ref.shape[1]}x{ref.shape[0]}, "
+                             f"the render {ours.shape[1]}x{ours.shape[0]}")
+        mask = _reflector_mask(ctx, name, source, ref.shape[:2])
+        entry = {"name": name, "reflector_pixels": int(mask.sum()) if mask is not None else 0}
+        imgs = {"ours": ours}
+        if single:
+            imgs["single"] = read_image(ws.path(f"renders/test_single/{i:04d}.png"))
+        if oracle is not None:
+            f = oracle.render(cam, exclude=(name,) if source == "leave_one_out" else ())
+            imgs["oracle"] = np.clip(f.color, 0, 1)
+        for k, img in imgs.items():
+            sc = _scores(ref, img, mask, cfg.flip)
+            rows[k].append(sc)
+            entry[k] = sc
+        per_view.append(entry)
+        err = np.repeat(np.clip(np.abs(ours - ref).mean(2, keepdims=True) * 4, 0, 1), 3, 2)
+        panel = [ours, ref, imgs.get("single", np.zeros_like(ours)), err]
+        write_image(ws.path(f"eval/side_by_side/{i:04d}.png"),
+                    np.concatenate([to_display(p) for p in panel], 1))
+    if oracle is not None:
+        oracle.release()
+    methods = {k: _mean(v) for k, v in rows.items() if v}
+    summary = {k: v for k, v in methods["ours"].items()}
+    for k in ("single", "oracle"):
+        for m, v in methods.get(k, {}).items():
+            summary[f"{k}_{m}"] = v
+    if "single" in methods and methods["ours"].get("psnr_mask") is not None:
+        summary["reflector_gain_db"] = methods["ours"]["psnr_mask"] - methods["single"]["psnr_mask"]
+    if "oracle" in methods:
+        summary["oracle_gap_db"] = methods["oracle"]["psnr"] - methods["ours"]["psnr"]
+    result = {"set": "test", "source": source, "summary": summary, "methods": methods,
+              "per_view": per_view, "notes": "psnr_mask/ssim_mask/flip_mask: inside reflectors"}
+    fly = _set_cameras(ctx, "fly")
+    if fly:
+        fsrc = _source(ctx, "fly")
+        frames = [read_image(ws.path(f"renders/fly/{i:04d}.png")) for i in range(len(fly))]
+        gkeys = [_gt_image_key(ctx, "fly", n, fsrc) for n in fly]
+        gt = ([read_image(ws.path(k)) for k in gkeys]
+              if all(k and ws.path(k).is_file() for k in gkeys) else None)
+        result["temporal"] = {"ours": temporal(frames, gt)}
+        fs = _set_cameras(ctx, "fly_single")
+        if fs:
+            sframes = [read_image(ws.path(f"renders/fly_single/{i:04d}.png")) for i in range(len(fs))]
+            result["temporal"]["single"] = temporal(sframes, gt)
+        for k, v in result["temporal"]["ours"].items():
+            summary[f"fly_{k}"] = v
+        write_mp4(ws.path("eval/fly.mp4"), frames, fps=cfg.fps)
+    _chart(ws.path("eval/metrics.png"), methods)
+    ws.write_json("eval/metrics.json", result)
+    log.info("evaluate: PSNR ours %.2f dB (reflectors %s), single-layer %s, oracle %s",
+             summary["psnr"], _fmt(summary.get("psnr_mask")), _fmt(summary.get("single_psnr")),
+             _fmt(summary.get("oracle_psnr")))
+
+
+def _fmt(v) -> str:
+    return "n/a" if v is None else f"{v:.2f} dB"
+
+
+def _oracle_model(ctx: StageContext):
+    from ..render.oracle import GroundTruth
+    from .render_views import render_settings
+    root = ctx.ws.input_root
+    if not (root / "gt" / "geom").is_dir() or not (root / "gt" / "mesh.ply").is_file():
+        return None
+    from ..config import build_config
+    from . import render_views
+    cfg = build_config(render_views.RenderViewsConfig, "render_views",
+                       ctx.ws.config().get("render_views", {}))
+    return GroundTruth(root).model(layers=True, settings=render_settings(cfg))
+
+
+def _chart(path: Path, methods: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from ..workspace import atomic_path
+    groups = [("psnr", "PSNR (dB)"), ("psnr_mask", "PSNR in reflectors (dB)"), ("ssim", "SSIM"),
+              ("flip", "FLIP (lower is better)")]
+    fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups), 3.2))
+    names = list(methods)
+    for ax, (key, title) in zip(axes, groups):
+        vals = [methods[m].get(key) for m in names]
+        ax.bar(names, [np.nan if v is None else v for v in vals],
+               color=["tab:blue", "tab:orange", "tab:green"][:len(names)])
+        ax.set_title(title, fontsize=9)
+        for j, v in enumerate(vals):
+            if v is not None:
+                ax.text(j, v, f"{v:.3g}", ha="center", va="bottom", fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+
+
+STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
+              config=EvaluateConfig, version="1", run=run, inputs=inputs, outputs=outputs)

@@ -1,6 +1,179 @@
-"""Stage `render_views`: view selection and blending into novel views. Not built yet (issue #7, Xu et al. §5.1)."""
+"""Stage `render_views`: novel views by view selection, fuzzy depth test and two-layer blending
+(Xu et al. 2021, §5.1; the renderer is `render/ibr.py`).
+
+Render sets, each `renders/<set>/NNNN.png` + `timings.json` + `cameras.json` (the cameras, in the
+cameras.json format, so `evaluate` and `ibr render` know what was rendered):
+  test         the input's held-out cameras (gt/test_cameras.json); when the input has none, a
+               leave-one-out set: every registered capture view rendered from the others
+  test_single  the same cameras with the single-layer baseline (decomposition off), if `baseline`
+  fly          gt/flythrough_cameras.json, or a smooth path through the registered cameras
+  fly_single   the fly-through with the single-layer baseline, if `baseline`
+  loo          leave-one-out renders of every capture view (`leave_one_out`; supersample trains on them)
+Single-layer rendering is used throughout when `reflection` has not run.
+"""
 from __future__ import annotations
 
-from .common import planned
+import json
+import logging
+from dataclasses import dataclass
 
-STAGE = planned('render_views', 'view selection and blending into novel views', 'issue #7, Xu et al. §5.1')
+from ..config import StageConfig, param
+from ..runner import Stage, StageContext
+from .common import REGISTERED_CAMERAS, registered_views
+
+log = logging.getLogger("ibr_pipeline.render_views")
+
+TEST_CAMERAS = "input/gt/test_cameras.json"
+FLY_CAMERAS = "input/gt/flythrough_cameras.json"
+
+
+@dataclass(frozen=True)
+class RenderViewsConfig(StageConfig):
+    lam: float = param(0.1, "Eq. 14 λ: weight of the camera-distance term", min=0.0, max=100.0)
+    delta: float = param(0.033, "Eq. 15 δ: blending weight w_k = exp(-d_k/δ)", min=1e-4, max=10.0)
+    max_angle: float = param(30.0, "§5.1.2 view selection: max angle between optical axes (deg)",
+                             min=1.0, max=180.0)
+    max_dist: float = param(1.8, "§5.1.2 view selection: max distance between centres (m)",
+                            min=0.01, max=1000.0)
+    cost_margin: float = param(0.17, "§5.1.3 fuzzy depth test: IBR-cost margin", min=0.0, max=10.0)
+    depth_tol: float = param(0.03, "§5.1.3 fuzzy depth test: depth tolerance (m)", min=1e-4, max=10.0)
+    feather_px: float = param(20.0, "§5.1.4 feathering width at image borders (px)", min=0.0, max=500.0)
+    edge_decay_px: float = param(5.0, "§5.1.4 weight decay around depth edges (px)", min=0.0, max=100.0)
+    fill_holes: bool = param(True, "fill holes by push-pull with weight decay at hole borders")
+    hysteresis: bool = param(True, "§5.1.2 keep the previous frame's views (camera paths)")
+    baseline: bool = param(True, "also render the single-layer baseline (<set>_single)")
+    leave_one_out: bool = param(True, "also render every capture view from the others (renders/loo)")
+    fly_frames: int = param(0, "render at most this many fly-through frames (0 = all; a generated "
+                            "path has 48)", min=0, max=100000)
+
+
+def render_settings(cfg):
+    """The renderer's settings from a stage config (any object with the same fields)."""
+    from ..render.ibr import RenderSettings
+    return RenderSettings(lam=cfg.lam, delta=cfg.delta, max_angle=cfg.max_angle,
+                          max_dist=cfg.max_dist, cost_margin=cfg.cost_margin,
+                          depth_tol=cfg.depth_tol, feather_px=cfg.feather_px,
+                          edge_decay_px=cfg.edge_decay_px, fill_holes=cfg.fill_holes,
+                          hysteresis=cfg.hysteresis)
+
+
+def _cameras(ctx: StageContext, key: str) -> dict:
+    from ..scene import cameras_from_json
+    p = ctx.ws.path(key)
+    return cameras_from_json(p) if p.is_file() else {}
+
+
+def render_sets(ctx: StageContext) -> dict[str, dict]:
+    """{set: {"cameras": [(name, Camera)], "exclude": [names or None], "source": str}} — a pure
+    function of the workspace and config, shared by the inputs/outputs declarations and run()."""
+    from ..render.video import interpolate_path
+    from .common import registered_cameras
+    cfg = ctx.config
+    cams = registered_cameras(ctx.ws)
+    names = [n for n in ctx.scene.names if n in cams]
+    loo = {"cameras": [(n, cams[n]) for n in names], "exclude": names, "source": "leave_one_out"}
+    test = _cameras(ctx, TEST_CAMERAS)
+    sets = {"test": {"cameras": list(test.items()), "exclude": [None] * len(test),
+                     "source": "heldout"} if test else dict(loo)}
+    fly = _cameras(ctx, FLY_CAMERAS)
+    if fly:
+        fly_list, src = list(fly.items()), "flythrough"
+    else:
+        path = interpolate_path([cams[n] for n in names], 48) if len(names) >= 2 else []
+        fly_list, src = [(f"path_{i:04d}", c) for i, c in enumerate(path)], "interpolated"
+    if cfg.fly_frames:
+        fly_list = fly_list[:cfg.fly_frames]
+    if fly_list:
+        sets["fly"] = {"cameras": fly_list, "exclude": [None] * len(fly_list), "source": src}
+    if cfg.baseline:
+        for s in list(sets):
+            sets[f"{s}_single"] = dict(sets[s], layers=False)
+    if cfg.leave_one_out:
+        sets["loo"] = loo
+    return sets
+
+
+def _view_files(ctx: StageContext, view: str) -> list[str]:
+    ws = ctx.ws
+    vdir = ws.view_dir(view)
+    keys = [f"{vdir}/mesh.ply", f"{vdir}/edges.png", ctx.scene.view(view).image]
+    lj = ws.path(f"{vdir}/layers.json")
+    if lj.is_file():
+        keys.append(f"{vdir}/layers.json")
+        try:
+            two = json.loads(lj.read_text()).get("reflector") is not None
+        except (OSError, json.JSONDecodeError):
+            two = False
+        if two:
+            keys += [f"{vdir}/{f}" for f in ("I0.png", "I1.png", "beta.npy", "M0.ply", "M1.ply")]
+    return keys
+
+
+def inputs(ctx: StageContext) -> list[str]:
+    keys = [REGISTERED_CAMERAS]
+    if not ctx.ws.path(REGISTERED_CAMERAS).is_file():
+        return keys
+    for v in registered_views(ctx):
+        keys += _view_files(ctx, v)
+    keys += [k for k in (TEST_CAMERAS, FLY_CAMERAS) if ctx.ws.path(k).is_file()]
+    return keys
+
+
+def outputs(ctx: StageContext) -> list[str]:
+    if not ctx.ws.path(REGISTERED_CAMERAS).is_file():
+        return []
+    out = []
+    for s, spec in render_sets(ctx).items():
+        out += [f"renders/{s}/{i:04d}.png" for i in range(len(spec["cameras"]))]
+        out += [f"renders/{s}/timings.json", f"renders/{s}/cameras.json"]
+    return out
+
+
+def run(ctx: StageContext) -> None:
+    import numpy as np
+    from tqdm import tqdm
+
+    from ..io.images import write_image
+    from ..render.gl import renderer_name
+    from ..render.ibr import IBRModel
+    from ..scene import cameras_to_json
+
+    ws = ctx.ws
+    progress = log.isEnabledFor(logging.INFO)
+    settings = render_settings(ctx.config)
+    sets = render_sets(ctx)
+    models = {True: IBRModel.load(ws, layers=True, settings=settings, progress=progress)}
+    if any(not spec.get("layers", True) for spec in sets.values()):
+        models[False] = IBRModel.load(ws, layers=False, settings=settings, progress=progress)
+    two = sum(v.layers[1] is not None for v in models[True].views)
+    log.info("render_views: %d views (%d with a reflection layer), GL: %s", len(models[True].views),
+             two, renderer_name())
+    for s, spec in sets.items():
+        model = models[spec.get("layers", True)]
+        frames, prev = [], None
+        sequential = s.startswith("fly")
+        for i, ((name, cam), excl) in enumerate(tqdm(list(zip(spec["cameras"], spec["exclude"])),
+                                                     desc=f"render {s}", unit="frame",
+                                                     disable=not progress, leave=False)):
+            f = model.render(cam, exclude=() if excl is None else (excl,),
+                             previous=prev if sequential else None)
+            prev = f
+            write_image(ws.path(f"renders/{s}/{i:04d}.png"), f.color)
+            frames.append({"index": i, "name": name, "ms": round(f.ms, 3),
+                           **{k: round(v, 3) for k, v in f.timings.items()},
+                           "selected": f.selected, "holes": round(float(1 - f.covered.mean()), 5)})
+        ms = [f["ms"] for f in frames]
+        ws.write_json(f"renders/{s}/timings.json", {
+            "set": s, "source": spec["source"], "layers": bool(spec.get("layers", True)) and two > 0,
+            "size": list(spec["cameras"][0][1].size) if frames else None,
+            "renderer": renderer_name(), "median_ms": float(np.median(ms)) if ms else None,
+            "frames": frames})
+        ws.write_text(f"renders/{s}/cameras.json", cameras_to_json(dict(spec["cameras"])))
+        log.info("render_views: %-12s %3d frames, median %.1f ms/frame", s, len(frames),
+                 float(np.median(ms)) if ms else float("nan"))
+    for m in models.values():
+        m.release()
+
+
+STAGE = Stage(name="render_views", help="view selection and blending into novel views (Xu §5.1)",
+              config=RenderViewsConfig, version="1", run=run, inputs=inputs, outputs=outputs)

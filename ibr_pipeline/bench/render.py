@@ -1,0 +1,156 @@
+"""Benchmark of issue #7: held-out accuracy and frame time of the IBR renderer.
+
+    python -m ibr_pipeline.bench.render [--scene tiny|mirror_room | --root DIR] [--ws WS] [--width 640
+        --height 480] [--frames 24] [--repeats 3] [--device cpu|cuda] [--out FILE]
+
+Accuracy (held-out cameras of the scene, against gt/test/images): the oracle representation
+(GT depth + GT layers, `render/oracle.py`) with two layers and with one (the single-layer
+baseline), and — with `--ws` — the workspace's own representation (`IBRModel.load`, i.e. what
+view_mesh/reflection reconstructed). PSNR/SSIM/FLIP overall, inside reflectors (GT material with
+kr > 0) and over covered pixels only; hole fraction.
+Speed: the fly-through cameras (or the test cameras) resized to --width x --height, rendered in
+sequence with hysteresis, median ms per frame over `repeats` passes (view selection, GL passes,
+read-back, hole filling, composition all included). `--device cuda` only checks that the GL
+renderer is an NVIDIA one (EGL picks the GPU); the code path is the same.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _scene_root(name: str, cache: Path) -> Path:
+    repo = Path(__file__).resolve().parents[2]
+    if name == "mirror_room":
+        return repo / "sample_data" / "mirror_room"
+    root = cache / name
+    if not (root / "gt" / "test_cameras.json").is_file():
+        from ..synthetic.generate import SynthOptions, generate
+        generate(SynthOptions(name, seed=3, progress=False), root)
+    return root
+
+
+def accuracy(model, root: Path, with_flip: bool = True) -> dict:
+    from .. import metrics
+    from ..io.images import read_image
+    from ..scene import cameras_from_json
+    test = cameras_from_json(root / "gt" / "test_cameras.json")
+    mats = json.loads((root / "gt" / "scene.json").read_text())["materials"]
+    kinds = [m["index"] for m in mats if m.get("kr", 0) > 0]
+    rows = []
+    for name, cam in test.items():
+        ref = read_image(root / "gt" / "test" / "images" / name)
+        with np.load(root / "gt" / "test" / "geom" / f"{Path(name).stem}.npz") as z:
+            mask = np.isin(z["material"], kinds)
+        f = model.render(cam)
+        r = metrics.all_metrics(ref, f.color, mask if mask.any() else None, with_flip=with_flip)
+        r["psnr_covered"] = metrics.psnr(ref, f.color, f.covered)
+        r["holes"] = float(1 - f.covered.mean())
+        rows.append(r)
+    keys = sorted({k for r in rows for k in r})
+    out = {}
+    for k in keys:
+        v = np.array([r.get(k, np.nan) for r in rows], dtype=np.float64)
+        v = v[np.isfinite(v)]
+        out[k] = float(v.mean()) if len(v) else None
+    out["views"] = len(rows)
+    return out
+
+
+def speed(model, cams: list, repeats: int) -> dict:
+    runs = []
+    for _ in range(repeats):
+        prev, ms, parts = None, [], []
+        for cam in cams:
+            f = model.render(cam, previous=prev)
+            prev = f
+            ms.append(f.ms)
+            parts.append([f.timings["select_ms"], f.timings["gl_ms"], f.timings["post_ms"],
+                          len(f.selected)])
+        runs.append((ms, parts))
+    ms = np.concatenate([np.array(r[0]) for r in runs[1:] or runs])  # first pass warms up GL
+    parts = np.concatenate([np.array(r[1]) for r in runs[1:] or runs])
+    return {"median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90)),
+            "frames": len(cams), "repeats": repeats, "median_select_ms": float(np.median(parts[:, 0])),
+            "median_gl_ms": float(np.median(parts[:, 1])), "median_post_ms": float(np.median(parts[:, 2])),
+            "mean_selected_views": float(parts[:, 3].mean())}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.render", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", choices=("tiny", "mirror_room"), default="mirror_room")
+    p.add_argument("--root", type=Path, help="a synthetic scene folder (`ibr synth` output) to use "
+                   "instead of --scene, e.g. a 120-view mirror_room")
+    p.add_argument("--ws", type=Path, help="also score this workspace's representation")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--frames", type=int, default=24, help="frames of the speed path")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--no-flip", action="store_true")
+    p.add_argument("--cache", type=Path, default=Path("out/bench_render"))
+    p.add_argument("--out", type=Path, help="JSON output (default out/bench_render/render_<scene>.json)")
+    a = p.parse_args(argv)
+    if a.width < 16 or a.height < 16 or a.frames < 1 or a.repeats < 1:
+        print("bench.render: error: --width/--height >= 16, --frames/--repeats >= 1", file=sys.stderr)
+        return 2
+    from ..render.gl import renderer_name
+    from ..render.oracle import GroundTruth
+    from ..render.video import interpolate_path
+    from ..scene import cameras_from_json
+
+    gl_name = renderer_name()
+    if a.device == "cuda" and "nvidia" not in gl_name.lower():
+        print(f"bench.render: error: --device cuda but the GL renderer is {gl_name}", file=sys.stderr)
+        return 2
+    root = a.root if a.root is not None else _scene_root(a.scene, a.cache)
+    gt = GroundTruth(root)
+    t0 = time.perf_counter()
+    two = gt.model(layers=True)
+    build_s = time.perf_counter() - t0
+    one = gt.model(layers=False)
+    res = {"scene": a.scene if a.root is None else a.root.name, "root": str(root), "renderer": gl_name, "machine": platform.node(),
+           "python": platform.python_version(), "oracle_build_s": build_s,
+           "accuracy": {"oracle": accuracy(two, root, not a.no_flip),
+                        "single_layer": accuracy(one, root, not a.no_flip)}}
+    if a.ws is not None:
+        from ..render.ibr import IBRModel
+        from ..workspace import Workspace
+        ours = IBRModel.load(Workspace(a.ws), layers=True)
+        res["accuracy"]["ours"] = accuracy(ours, root, not a.no_flip)
+        ours.release()
+    fly = root / "gt" / "flythrough_cameras.json"
+    base = list(cameras_from_json(fly).values()) if fly.is_file() else \
+        list(cameras_from_json(root / "gt" / "test_cameras.json").values())
+    path = interpolate_path(base + base[:1], a.frames) if len(base) >= 2 else base
+    cams = [c.resized(a.width, a.height) for c in path]
+    res["speed"] = {"size": [a.width, a.height], **speed(two, cams, a.repeats)}
+    acc = res["accuracy"]
+    res["targets"] = {
+        "reflector_gain_db (oracle vs single)": _diff(acc["oracle"], acc["single_layer"], "psnr_mask"),
+        "oracle_gap_db (oracle - ours)": _diff(acc["oracle"], acc.get("ours"), "psnr"),
+    }
+    two.release()
+    one.release()
+    out = a.out or a.cache / f"render_{res['scene']}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1))
+    print(json.dumps(res, indent=1))
+    return 0
+
+
+def _diff(a, b, k):
+    if not a or not b or a.get(k) is None or b.get(k) is None:
+        return None
+    return a[k] - b[k]
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,420 @@
+"""The IBR renderer (Xu et al. 2021, §5.1): view selection, fuzzy depth test, two-layer blending.
+
+    model = IBRModel.load(ws, layers=True)          # per-view two-layer meshes of a workspace
+    frame = model.render(camera, exclude=(), previous=None)
+    frame.color (H, W, 3) float32 linear, frame.depth (H, W) float32 z-depth (0 = hole),
+    frame.selected [view names], frame.ms (wall time of this frame, selection to read-back)
+
+Per frame and per layer (surface layer M0/I0/beta, reflection layer M1/I1) the GL passes of
+`render/shaders` run over the selected views: smallest IBR cost, front-most depth among the
+points within 0.17 of it, then the fuzzy-depth-tested weighted blend (Eq. 15 weights × the
+texture alpha = feathering × edge decay). The two blended layers are composed with the blended
+beta (Eq. 3) after small holes are filled (`blend.fill_holes`). `layers=False` is the
+single-layer baseline (every view's `mesh.ply` textured with its photograph: InsideOut-like).
+A view without a reflector (`layers.json` reflector null, or no reflection outputs at all) is a
+single-layer view with beta = 0 inside a two-layer model.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..errors import InputError
+from ..scene import Camera
+from . import blend, selection
+
+log = logging.getLogger("ibr_pipeline.render")
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Every constant of §5.1 (the `render_views` stage config carries the same fields)."""
+
+    lam: float = selection.LAMBDA                 # Eq. 14 λ
+    delta: float = blend.DELTA                    # Eq. 15 δ
+    max_angle: float = selection.MAX_ANGLE_DEG    # §5.1.2
+    max_dist: float = selection.MAX_DIST_M        # §5.1.2
+    angle_bins: int = selection.ANGLE_BINS        # §5.1.2
+    dist_bins: int = selection.DIST_BINS          # §5.1.2
+    cost_margin: float = blend.COST_MARGIN        # §5.1.3
+    depth_tol: float = blend.DEPTH_TOL_M          # §5.1.3
+    feather_px: float = blend.FEATHER_PX          # §5.1.4
+    edge_decay_px: float = blend.EDGE_DECAY_PX    # §5.1.4
+    fill_holes: bool = True                       # §5.1.4 holes
+    hole_decay_px: float = blend.HOLE_DECAY_PX
+    hysteresis: bool = True                       # §5.1.2 temporal hysteresis
+
+
+@dataclass
+class LayerData:
+    """One layer of one view: a world-space mesh, its texture (H, W, 3) and texture weight (H, W);
+    beta (H, W) for the surface layer (None = 0)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    rgb: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float32)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int32)
+        if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
+            raise ValueError(f"vertices must be (V, 3), got {self.vertices.shape}")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
+            raise ValueError(f"faces must be (F, 3), got {self.faces.shape}")
+        h, w = np.shape(self.alpha)[:2]
+        if np.shape(self.rgb) != (h, w, 3):
+            raise ValueError(f"rgb must be (H, W, 3) = {(h, w, 3)}, got {np.shape(self.rgb)}")
+        if self.beta is not None and np.shape(self.beta) != (h, w):
+            raise ValueError(f"beta must be (H, W) = {(h, w)}, got {np.shape(self.beta)}")
+
+
+@dataclass
+class ViewData:
+    name: str
+    camera: Camera
+    layers: tuple  # (LayerData, LayerData | None)
+
+
+@dataclass
+class Frame:
+    color: np.ndarray            # (H, W, 3) float32, linear
+    depth: np.ndarray            # (H, W) float32 z-depth of the surface layer, 0 = hole
+    selected: list               # names of the selected views
+    ms: float                    # wall time of the frame
+    camera: Camera | None = None
+    covered: np.ndarray | None = None   # (H, W) bool: some selected view covered the pixel
+    beta: np.ndarray | None = None      # (H, W) blended beta
+    timings: dict = field(default_factory=dict)
+
+
+def _pad_rgba(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    return np.concatenate([np.asarray(rgb, np.float32), np.asarray(alpha, np.float32)[..., None]], 2)
+
+
+class IBRModel:
+    """Per-view layered meshes + the GL renderer. GL objects are created lazily per view."""
+
+    def __init__(self, views: list[ViewData], settings: RenderSettings | None = None):
+        if not views:
+            raise InputError("IBR model: no views to render from")
+        self.views = list(views)
+        self.settings = settings or RenderSettings()
+        self.names = [v.name for v in self.views]
+        self._index = {n: i for i, n in enumerate(self.names)}
+        self.centers = np.array([v.camera.center for v in self.views])
+        self.axes = np.array([v.camera.viewing_direction for v in self.views])
+        self.has_layer1 = any(v.layers[1] is not None for v in self.views)
+        self._gpu: dict = {}
+        self._targets: dict = {}
+        self._progs = None
+
+    # --- loading ------------------------------------------------------------------------------
+    @classmethod
+    def load(cls, ws, layers: bool = True, settings: RenderSettings | None = None,
+             progress: bool = False) -> "IBRModel":
+        """The per-view meshes of workspace `ws` (after view_mesh; two layers after reflection)."""
+        from tqdm import tqdm
+
+        from ..stages.common import registered_cameras
+        cams = registered_cameras(ws)
+        scene = ws.scene()
+        s = settings or RenderSettings()
+        views = []
+        names = [n for n in scene.names if n in cams]
+        for name in tqdm(names, desc="loading views", unit="view", disable=not progress, leave=False):
+            views.append(load_view(ws, name, cams[name], scene.view(name).image, layers, s))
+        return cls(views, s)
+
+    # --- view selection (§5.1.1–5.1.2) -----------------------------------------------------------
+    def select(self, camera: Camera, exclude=(), previous: "Frame | None" = None):
+        s = self.settings
+        d = selection.view_distance(self.axes, self.centers, camera.viewing_direction,
+                                    camera.center, s.lam)
+        avail = np.array([n not in set(exclude) for n in self.names])
+        if not avail.any():
+            raise InputError("IBR model: every view is excluded")
+        prev = None
+        if s.hysteresis and previous is not None and previous.camera is not None:
+            prev = (previous.camera.R, previous.camera.center,
+                    [self._index[n] for n in previous.selected if n in self._index])
+        sel = selection.select_views(camera.R, camera.center, self.axes, self.centers, d, avail,
+                                     prev, s.max_angle, s.max_dist, s.angle_bins, s.dist_bins)
+        return sel, d
+
+    # --- GL resources -------------------------------------------------------------------------
+    def _programs(self):
+        if self._progs is None:
+            from . import gl, shaders
+            ctx = gl.get_context()
+            self._progs = {k: ctx.program(vertex_shader=shaders.VERTEX, fragment_shader=src)
+                           for k, src in (("cost", shaders.COST), ("front", shaders.FRONT),
+                                          ("blend", shaders.BLEND), ("single", shaders.SINGLE))}
+        return self._progs
+
+    def _view_gpu(self, k: int, layer: int):
+        key = (k, layer)
+        if key not in self._gpu:
+            from . import gl
+            ctx = gl.get_context()
+            L = self.views[k].layers[layer]
+            vbo = ctx.buffer(L.vertices.tobytes())
+            ibo = ctx.buffer(L.faces.tobytes())
+            vaos = {name: ctx.vertex_array(p, [(vbo, "3f", "in_pos")], ibo, index_element_size=4)
+                    for name, p in self._programs().items()}
+            beta = L.beta if L.beta is not None else np.zeros(L.alpha.shape, np.float32)
+            self._gpu[key] = {"vaos": vaos, "rgba": gl.upload_texture(_pad_rgba(L.rgb, L.alpha)),
+                              "beta": gl.upload_texture(beta), "objs": (vbo, ibo),
+                              "has_beta": bool(layer == 0 and np.any(beta > 0))}
+        return self._gpu[key]
+
+    def _target(self, size):
+        if size not in self._targets:
+            from . import gl
+            ctx = gl.get_context()
+            t = {"cost": gl.float_target(size, 1), "front": gl.float_target(size, 1),
+                 "acc": gl.float_target(size, 4), "beta": gl.float_target(size, 1)}
+            t["fbo_cost"] = ctx.framebuffer([t["cost"]])
+            t["fbo_front"] = ctx.framebuffer([t["front"]])
+            t["fbo_blend"] = ctx.framebuffer([t["acc"], t["beta"]])
+            self._targets[size] = t
+        return self._targets[size]
+
+    @staticmethod
+    def _set(prog, **values):
+        for k, v in values.items():
+            if k in prog:
+                if isinstance(v, bytes):
+                    prog[k].write(v)
+                else:
+                    prog[k].value = v
+
+    def _common_uniforms(self, camera: Camera):
+        from . import gl
+        return {"P_n": gl.mat_bytes(gl.projection(camera)),
+                "V_n": gl.mat_bytes(camera.cam_from_world),
+                "t_n": tuple(float(c) for c in camera.center)}
+
+    def _view_uniforms(self, k: int):
+        from . import gl
+        cam = self.views[k].camera
+        return {"S_k": gl.mat_bytes(gl.source_matrix(cam)),
+                "t_k": tuple(float(c) for c in cam.center),
+                "src_size": (float(cam.width), float(cam.height))}
+
+    def _render_layer(self, camera: Camera, layer: int, items: list[tuple[int, float]],
+                      box: tuple[int, int, int, int] | None = None):
+        """The three GL passes for one layer, inside `box` (x, y, w, h; default: everything).
+        Returns acc (h,w,4) = Σ w·(rgb, 1), beta_acc (h,w) = Σ w·beta, front (h,w) depth."""
+        import moderngl
+
+        from . import gl
+        ctx = gl.get_context()
+        s = self.settings
+        size = camera.size
+        t = self._target(size)
+        progs = self._programs()
+        common = self._common_uniforms(camera)
+        box = box or (0, 0, size[0], size[1])
+        for name in ("fbo_cost", "fbo_front", "fbo_blend"):
+            t[name].scissor = box
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        ctx.enable(moderngl.BLEND)
+        ctx.blend_func = moderngl.ONE, moderngl.ONE
+        # pass 1: smallest IBR cost per pixel (§5.1.3)
+        ctx.blend_equation = moderngl.MIN
+        t["fbo_cost"].use()
+        t["fbo_cost"].clear(1e30, 1e30, 1e30, 1e30, viewport=box)
+        for k, _ in items:
+            g = self._view_gpu(k, layer)
+            self._set(progs["cost"], **common, **self._view_uniforms(k))
+            g["vaos"]["cost"].render(moderngl.TRIANGLES)
+        # pass 2: front-most depth among points within cost_margin of the smallest cost
+        t["fbo_front"].use()
+        t["fbo_front"].clear(1e30, 1e30, 1e30, 1e30, viewport=box)
+        t["cost"].use(location=0)
+        for k, _ in items:
+            g = self._view_gpu(k, layer)
+            self._set(progs["front"], **common, **self._view_uniforms(k), cost_min=0,
+                      cost_margin=float(s.cost_margin))
+            g["vaos"]["front"].render(moderngl.TRIANGLES)
+        # pass 3: fuzzy depth test + weighted blend (Eq. 15 × texture alpha)
+        ctx.blend_equation = moderngl.FUNC_ADD
+        t["fbo_blend"].use()
+        t["fbo_blend"].clear(0.0, 0.0, 0.0, 0.0, viewport=box)
+        t["front"].use(location=0)
+        for k, w in items:
+            g = self._view_gpu(k, layer)
+            g["rgba"].use(location=1)
+            g["beta"].use(location=2)
+            self._set(progs["blend"], **common, **self._view_uniforms(k), front=0, tex_rgba=1,
+                      tex_beta=2, depth_tol=float(s.depth_tol), w_k=float(w),
+                      has_beta=g["has_beta"])
+            g["vaos"]["blend"].render(moderngl.TRIANGLES)
+        ctx.disable(moderngl.BLEND)
+        acc = gl.read_float(t["fbo_blend"], 0, box, 4)
+        bacc = gl.read_float(t["fbo_blend"], 1, box, 1)[..., 0] if layer == 0 else None
+        front = gl.read_float(t["fbo_front"], 0, box, 1)[..., 0]
+        return acc, bacc, front
+
+    # --- rendering ------------------------------------------------------------------------------
+    def render(self, camera: Camera, exclude=(), previous: "Frame | None" = None,
+               layers: bool = True) -> Frame:
+        """Render `camera`: select views, blend both layers, fill holes, compose (Eq. 3)."""
+        t0 = time.perf_counter()
+        s = self.settings
+        sel, d = self.select(camera, exclude, previous)
+        w = blend.view_weights(d[sel], s.delta)
+        t1 = time.perf_counter()
+        items0 = [(k, float(wk)) for k, wk in zip(sel, w)]
+        acc, bacc, front = self._render_layer(camera, 0, items0)
+        covered = acc[..., 3] > 0
+        inv = 1.0 / np.where(covered, acc[..., 3], 1.0)
+        acc[..., 3] = bacc
+        color4 = acc * inv[..., None]  # normalised blend of (I0 rgb, beta); 0 where uncovered
+        items1 = [(k, wk) for k, wk in items0 if layers and self.views[k].layers[1] is not None]
+        refl = color4[..., 3] > 1e-4
+        box = _bbox(refl) if items1 else None
+        i1 = cov1 = None
+        if box is not None:  # reflection layer only where the blended beta is > 0
+            acc1, _, _ = self._render_layer(camera, 1, items1, box)
+            x, y, bw, bh = box
+            cov1 = np.zeros(covered.shape, bool)
+            cov1[y:y + bh, x:x + bw] = acc1[..., 3] > 0
+            i1 = np.zeros((*covered.shape, 3), np.float32)
+            c1 = cov1[y:y + bh, x:x + bw]
+            i1[y:y + bh, x:x + bw] = acc1[..., :3] / np.where(c1, acc1[..., 3], 1.0)[..., None]
+        t2 = time.perf_counter()
+        if s.fill_holes:
+            color4 = blend.fill_holes(color4, covered, s.hole_decay_px)
+        beta = np.clip(color4[..., 3], 0.0, 1.0)
+        if s.fill_holes and i1 is not None and ((beta > 1e-4) & ~cov1).any():
+            i1 = blend.fill_holes(i1, cov1, s.hole_decay_px)
+        color = color4[..., :3] if i1 is None else blend.compose(color4[..., :3], beta, i1)
+        depth = np.where(covered & (front < 1e29), front, 0.0).astype(np.float32)
+        t3 = time.perf_counter()
+        return Frame(np.clip(color, 0.0, None).astype(np.float32), depth,
+                     [self.names[k] for k in sel], (t3 - t0) * 1e3, camera, covered, beta,
+                     {"select_ms": (t1 - t0) * 1e3, "gl_ms": (t2 - t1) * 1e3,
+                      "post_ms": (t3 - t2) * 1e3})
+
+    def render_single_view(self, camera: Camera, k: int, layer: int = 0) -> dict:
+        """Reference pass: view k alone with an ordinary depth test. Returns rgb, alpha, z, cost,
+        beta (H, W[, 3]) and covered (H, W) — the inputs of the numpy blend in `blend.py`."""
+        import moderngl
+
+        from . import gl
+        ctx = gl.get_context()
+        size = camera.size
+        a, b = gl.float_target(size, 4), gl.float_target(size, 4)
+        depth = ctx.depth_renderbuffer(size)
+        fbo = ctx.framebuffer([a, b], depth)
+        try:
+            fbo.use()
+            fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
+            ctx.enable(moderngl.DEPTH_TEST)
+            g = self._view_gpu(k, layer)
+            g["rgba"].use(location=1)
+            g["beta"].use(location=2)
+            self._set(self._programs()["single"], **self._common_uniforms(camera),
+                      **self._view_uniforms(k), tex_rgba=1, tex_beta=2)
+            g["vaos"]["single"].render(moderngl.TRIANGLES)
+            ctx.disable(moderngl.DEPTH_TEST)
+            rgba = gl.read_float(fbo, 0, size, 4)
+            geo = gl.read_float(fbo, 1, size, 4)
+        finally:
+            for o in (fbo, depth, a, b):
+                o.release()
+        cov = geo[..., 3] > 0
+        return {"rgb": rgba[..., :3], "alpha": rgba[..., 3], "z": np.where(cov, geo[..., 0], 0),
+                "cost": geo[..., 1], "beta": geo[..., 2], "covered": cov}
+
+    def release(self) -> None:
+        """Free the GL objects of this model (the context itself stays for the process)."""
+        for g in self._gpu.values():
+            for v in g["vaos"].values():
+                v.release()
+            for o in (*g["objs"], g["rgba"], g["beta"]):
+                o.release()
+        for t in self._targets.values():
+            for o in t.values():
+                o.release()
+        if self._progs:
+            for p in self._progs.values():
+                p.release()
+        self._gpu, self._targets, self._progs = {}, {}, None
+
+    def with_settings(self, **changes) -> "IBRModel":
+        return IBRModel(self.views, replace(self.settings, **changes))
+
+
+def _bbox(mask: np.ndarray):
+    """(x, y, w, h) of the True pixels of `mask` (None when there are none)."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if len(rows) == 0:
+        return None
+    return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
+
+
+# --- loading one view from a workspace -----------------------------------------------------------
+def _edges(path) -> np.ndarray:
+    from ..io.images import read_image
+    return read_image(path)[..., 0] > 0.5
+
+
+def mask_boundary(mask: np.ndarray) -> np.ndarray:
+    """Pixels of `mask` next to a pixel outside it (4-neighbourhood) and image-border pixels."""
+    m = np.asarray(mask, bool)
+    p = np.pad(m, 1, constant_values=False)
+    inner = p[:-2, 1:-1] & p[2:, 1:-1] & p[1:-1, :-2] & p[1:-1, 2:]
+    return m & ~inner
+
+
+def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
+              s: RenderSettings) -> ViewData:
+    """One view's LayerData from the files of docs/PIPELINE.md (view_mesh + reflection)."""
+    from ..io.images import read_image
+    from ..io.mesh import read_ply
+
+    vdir = ws.view_dir(name)
+    H, W = camera.height, camera.width
+
+    def img(key):
+        a = read_image(ws.path(key))
+        if a.shape[:2] != (H, W):
+            raise InputError(f"{ws.path(key)}: image is {a.shape[1]}x{a.shape[0]}, camera says {W}x{H}")
+        return a
+
+    edges = _edges(ws.path(f"{vdir}/edges.png"))
+    if edges.shape != (H, W):
+        raise InputError(f"{ws.path(f'{vdir}/edges.png')}: size {edges.shape[::-1]} is not {W}x{H}")
+    alpha0 = blend.texture_alpha(edges, s.feather_px, s.edge_decay_px)
+    info = {}
+    lj = ws.path(f"{vdir}/layers.json")
+    if layers and lj.is_file():
+        try:
+            info = json.loads(lj.read_text())
+        except json.JSONDecodeError as e:
+            raise InputError(f"{lj}: malformed JSON ({e})") from None
+    if layers and info.get("reflector") is not None:
+        m0, m1 = read_ply(ws.path(f"{vdir}/M0.ply")), read_ply(ws.path(f"{vdir}/M1.ply"))
+        bpath = ws.path(f"{vdir}/beta.npy")
+        try:
+            beta = np.load(bpath).astype(np.float32)
+        except (OSError, ValueError) as e:
+            raise InputError(f"{bpath}: cannot read ({e})") from None
+        if beta.shape != (H, W) or not np.all(np.isfinite(beta)):
+            raise InputError(f"{bpath}: beta must be finite with shape {(H, W)}, got {beta.shape}")
+        beta = np.clip(beta, 0.0, 1.0)
+        l0 = LayerData(m0.vertices, m0.faces, img(f"{vdir}/I0.png"), alpha0, beta)
+        alpha1 = blend.texture_alpha(edges | mask_boundary(beta > 0), s.feather_px, s.edge_decay_px)
+        l1 = LayerData(m1.vertices, m1.faces, img(f"{vdir}/I1.png"), alpha1)
+        return ViewData(name, camera, (l0, l1))
+    m = read_ply(ws.path(f"{vdir}/mesh.ply"))
+    return ViewData(name, camera, (LayerData(m.vertices, m.faces, img(image_key), alpha0), None))

@@ -1,0 +1,231 @@
+"""The oracle representation: per-view two-layer meshes built from a synthetic scene's ground truth.
+
+Used (1) by `evaluate` as the ceiling our reconstruction stages chase (the same renderer on GT depth
+and GT layers), (2) by tests and the benchmark before `view_mesh`/`reflection` exist, and
+(3) by `write_gt_workspace`, which writes those meshes as the files of docs/PIPELINE.md.
+
+Per capture view (docs/SYNTHETIC.md): M0 = grid mesh of gt/geom depth cut at depth jumps; I0, I1,
+beta = gt/I0, gt/I1, gt/beta; M1 = the reflection layer's mirror-world geometry: for every pixel
+with beta > 0 the reflector whose plane passes through its GT point is found, and the camera ray is
+cast against the GT mesh mirrored through that plane (only the part in front of the plane), which
+gives the virtual point the reflection is seen at.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..scene import Camera, cameras_from_json, read_reflectors
+from . import blend
+from .ibr import LayerData, RenderSettings, ViewData, mask_boundary
+
+DEPTH_JUMP = 0.05  # relative depth jump that cuts the grid mesh and marks a depth edge
+GRID_STEP = 2      # grid mesh: one vertex every 2 pixels
+SIMPLIFY = 0.9     # then 90 % of the triangles removed by quadric decimation
+
+
+def depth_edges(depth: np.ndarray, jump: float = DEPTH_JUMP) -> np.ndarray:
+    """(H, W) bool: pixels with a 4-neighbour whose depth differs by more than `jump` (relative),
+    or that border a pixel without depth."""
+    d = np.asarray(depth, dtype=np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got {d.shape}")
+    e = np.zeros(d.shape, bool)
+    for a, b in (((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
+                 ((slice(1, None), slice(None)), (slice(None, -1), slice(None)))):
+        x, y = d[a], d[b]
+        valid = (x > 0) & (y > 0)
+        jumpy = ~valid & ((x > 0) | (y > 0)) | valid & (np.maximum(x, y) > (1 + jump) * np.minimum(x, y))
+        e[a] |= jumpy
+        e[b] |= jumpy
+    return e & (d > 0)
+
+
+def grid_mesh(camera: Camera, depth: np.ndarray, step: int = 1,
+              jump: float = DEPTH_JUMP) -> tuple[np.ndarray, np.ndarray]:
+    """World-space triangle mesh of a z-depth map (0 = no depth): one vertex per `step`-th pixel
+    centre, two triangles per grid cell, a triangle dropped when its corners' depths differ by more
+    than `jump` (relative): the mesh is cut at depth discontinuities."""
+    d = np.asarray(depth, dtype=np.float64)
+    if d.shape != (camera.height, camera.width):
+        raise ValueError(f"depth {d.shape} does not match camera {camera.width}x{camera.height}")
+    ys = np.unique(np.r_[np.arange(0, camera.height, step), camera.height - 1])
+    xs = np.unique(np.r_[np.arange(0, camera.width, step), camera.width - 1])
+    sub = d[np.ix_(ys, xs)]
+    uu, vv = np.meshgrid(xs, ys)
+    verts = camera.unproject(np.c_[uu.ravel(), vv.ravel()], sub.ravel())
+    idx = np.arange(sub.size).reshape(sub.shape)
+    a, b, c, e = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    tris = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, e], -1).reshape(-1, 3)])
+    z = sub.ravel()[tris]
+    ok = (z.min(1) > 0) & (z.max(1) <= (1 + jump) * z.min(1))
+    return verts.astype(np.float32), tris[ok].astype(np.int32)
+
+
+def simplified_grid_mesh(camera: Camera, depth: np.ndarray, step: int = 2,
+                         reduction: float = SIMPLIFY) -> tuple[np.ndarray, np.ndarray]:
+    """`grid_mesh` reduced by quadric decimation (fast-simplification, borders preserved, so the
+    cuts at depth discontinuities stay where they are): planar rooms need few triangles, and the
+    rasterizer's cost is per triangle (llvmpipe)."""
+    v, f = grid_mesh(camera, depth, step)
+    if reduction <= 0 or len(f) < 200:
+        return v, f
+    import fast_simplification
+    v2, f2 = fast_simplification.simplify(v, f, target_reduction=reduction, agg=7,
+                                          preserve_border=True)
+    return np.asarray(v2, np.float32), np.asarray(f2, np.int32)
+
+
+def _mirrored_mesh(vertices: np.ndarray, faces: np.ndarray, plane: np.ndarray, side: float):
+    """The part of a mesh strictly in front of `plane` (on the cameras' side), mirrored through it."""
+    n, d0 = np.asarray(plane[:3]), float(plane[3])
+    s = side * (vertices @ n + d0)
+    fs = s[faces]
+    keep = (fs.min(1) > -1e-3) & (fs.max(1) > 1e-3)  # not behind, not lying in the plane itself
+    v = vertices - 2.0 * (vertices @ n + d0)[:, None] * n[None]
+    return v.astype(np.float32), faces[keep][:, ::-1].astype(np.uint32)
+
+
+class GroundTruth:
+    """Reads a synthetic input folder's gt/ once (mesh, reflectors, mirrored meshes)."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        for rel in ("cameras.json", "gt/mesh.ply", "gt/geom"):
+            if not (self.root / rel).exists():
+                raise InputError(f"{self.root / rel}: missing (not a synthetic scene with ground truth)")
+        self.cameras = cameras_from_json(self.root / "cameras.json")
+        rp = self.root / "reflectors.json"
+        self.reflectors = read_reflectors(rp) if rp.is_file() else ()
+        self._mesh = None
+        self._scenes: dict[int, object] = {}
+
+    def _scene(self, i: int):
+        if i not in self._scenes:
+            from ..io.mesh import read_ply
+            from .raycast import build_scene
+            if self._mesh is None:
+                self._mesh = read_ply(self.root / "gt" / "mesh.ply")
+            plane = np.asarray(self.reflectors[i].plane)
+            centres = np.array([c.center for c in self.cameras.values()])
+            side = float(np.sign(np.median(centres @ plane[:3] + plane[3])) or 1.0)
+            v, f = _mirrored_mesh(self._mesh.vertices.astype(np.float64), self._mesh.faces, plane, side)
+            self._scenes[i] = build_scene(v, f)
+        return self._scenes[i]
+
+    def geom(self, name: str) -> dict:
+        p = self.root / "gt" / "geom" / f"{Path(name).stem}.npz"
+        try:
+            with np.load(p) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError) as e:
+            raise InputError(f"{p}: cannot read ground-truth geometry ({e})") from None
+
+    def layers(self, name: str):
+        from ..io.images import read_image
+        stem = Path(name).stem
+        i0 = read_image(self.root / "gt" / "I0" / f"{stem}.png")
+        i1 = read_image(self.root / "gt" / "I1" / f"{stem}.png")
+        beta = read_image(self.root / "gt" / "beta" / f"{stem}.png")[..., 0]
+        return i0, i1, beta
+
+    def virtual_depth(self, camera: Camera, depth: np.ndarray, beta: np.ndarray) -> np.ndarray:
+        """(H, W) z-depth of the reflection layer's virtual points (0 outside reflectors)."""
+        from .raycast import camera_rays, cast
+        out = np.zeros(depth.shape, np.float64)
+        refl = (beta > 0) & (depth > 0)
+        if not refl.any() or not self.reflectors:
+            return out.astype(np.float32)
+        uv = camera.pixel_grid().reshape(-1, 2)
+        pts = camera.unproject(uv, depth.reshape(-1)).reshape(*depth.shape, 3)
+        planes = np.array([r.plane for r in self.reflectors])
+        dist = np.abs(pts @ planes[:, :3].T + planes[:, 3])  # (H, W, R)
+        which = np.where(dist.min(-1) < 0.02, dist.argmin(-1), -1)
+        origins, dirs = camera_rays(camera)
+        for i in range(len(self.reflectors)):
+            m = (refl & (which == i)).reshape(-1)
+            if not m.any():
+                continue
+            hit = cast(self._scene(i), origins[m], dirs[m])["t_hit"]
+            z = hit * (dirs[m] @ camera.R[2])
+            vals = np.where(np.isfinite(z) & (z > 0), z, 0.0)
+            flat = out.reshape(-1)
+            flat[np.flatnonzero(m)] = vals
+        return out.astype(np.float32)
+
+    def view(self, name: str, layers: bool = True, step: int = GRID_STEP,
+             settings: RenderSettings | None = None, image: np.ndarray | None = None) -> ViewData:
+        """ViewData of capture view `name` built from ground truth (two layers when `layers`)."""
+        from ..io.images import read_image
+        s = settings or RenderSettings()
+        cam = self.cameras[name]
+        depth = self.geom(name)["depth"].astype(np.float32)
+        edges = depth_edges(depth)
+        alpha0 = blend.texture_alpha(edges, s.feather_px, s.edge_decay_px)
+        v0, f0 = simplified_grid_mesh(cam, depth, step)
+        if not layers:
+            img = image if image is not None else read_image(self.root / "images" / name)
+            return ViewData(name, cam, (LayerData(v0, f0, img, alpha0), None))
+        i0, i1, beta = self.layers(name)
+        vdepth = self.virtual_depth(cam, depth, beta) if (beta > 0).any() else None
+        v1, f1 = simplified_grid_mesh(cam, vdepth, step) if vdepth is not None else (None, np.zeros((0, 3)))
+        if len(f1) == 0:
+            return ViewData(name, cam, (LayerData(v0, f0, i0, alpha0, beta), None))
+        alpha1 = blend.texture_alpha(depth_edges(vdepth) | edges | mask_boundary(beta > 0),
+                                     s.feather_px, s.edge_decay_px)
+        return ViewData(name, cam, (LayerData(v0, f0, i0, alpha0, beta), LayerData(v1, f1, i1, alpha1)))
+
+    def model(self, layers: bool = True, step: int = GRID_STEP, settings: RenderSettings | None = None,
+              names=None, progress: bool = False):
+        from tqdm import tqdm
+
+        from .ibr import IBRModel
+        names = list(self.cameras) if names is None else list(names)
+        views = [self.view(n, layers, step, settings)
+                 for n in tqdm(names, desc="oracle views", disable=not progress, leave=False)]
+        return IBRModel(views, settings)
+
+
+def write_gt_workspace(input_root: Path, ws_root: Path, layers: bool = True,
+                       step: int = GRID_STEP) -> None:
+    """Write the files of view_mesh (+ reflection when `layers`) and global/cameras.json built from
+    ground truth into a workspace (and run `ingest`), so render_views can run before #5/#6 exist."""
+    from ..io.images import write_image
+    from ..io.mesh import Mesh, write_ply
+    from ..scene import cameras_to_json
+    from ..workspace import Workspace
+
+    input_root, ws_root = Path(input_root).resolve(), Path(ws_root)
+    ws_root.mkdir(parents=True, exist_ok=True)
+    (ws_root / "ibr.toml").write_text(f"[input]\npath = {json.dumps(str(input_root))}\n")
+    ws = Workspace(ws_root)
+    from ..pipeline import load_configs, run
+    from ..stages import STAGES, stage_by_name
+    run(STAGES, ws, load_configs(STAGES, ws), [stage_by_name("ingest")], progress=False)
+    gt = GroundTruth(input_root)
+    ws.write_text("global/cameras.json", cameras_to_json(gt.cameras))
+    for name, cam in gt.cameras.items():
+        vdir = ws.view_dir(name)
+        depth = gt.geom(name)["depth"].astype(np.float32)
+        with ws.atomic_write(f"{vdir}/depth.npy") as f:
+            np.save(f, depth)
+        write_image(ws.path(f"{vdir}/edges.png"), depth_edges(depth).astype(np.uint8) * 255)
+        v0, f0 = simplified_grid_mesh(cam, depth, step)
+        write_ply(ws.path(f"{vdir}/mesh.ply"), Mesh(v0, f0))
+        if not layers:
+            continue
+        vd = gt.view(name, True, step)
+        l1 = vd.layers[1]
+        ws.write_json(f"{vdir}/layers.json", {"reflector": None if l1 is None else "gt"})
+        if l1 is None:
+            continue
+        l0 = vd.layers[0]
+        write_ply(ws.path(f"{vdir}/M0.ply"), Mesh(l0.vertices, l0.faces))
+        write_ply(ws.path(f"{vdir}/M1.ply"), Mesh(l1.vertices, l1.faces))
+        write_image(ws.path(f"{vdir}/I0.png"), l0.rgb)
+        write_image(ws.path(f"{vdir}/I1.png"), l1.rgb)
+        with ws.atomic_write(f"{vdir}/beta.npy") as f:
+            np.save(f, l0.beta.astype(np.float32))

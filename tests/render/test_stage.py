@@ -1,0 +1,114 @@
+"""render_views + evaluate through the runner/CLI on a workspace built from ground truth, the
+`ibr render` command, and bad input."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from ibr_pipeline.cli import main
+from ibr_pipeline.io.images import read_image
+from ibr_pipeline.render.oracle import write_gt_workspace
+
+
+@pytest.fixture(scope="module")
+def gt_ws(tiny_scene, tmp_path_factory):
+    ws = tmp_path_factory.mktemp("render") / "ws"
+    write_gt_workspace(tiny_scene[0], ws)
+    return ws
+
+
+def test_render_views_and_evaluate_through_cli(gt_ws, tiny_scene):
+    assert main(["-q", "render_views", str(gt_ws), "--no-progress"]) == 0
+    tim = json.loads((gt_ws / "renders" / "test" / "timings.json").read_text())
+    assert tim["source"] == "heldout" and len(tim["frames"]) == 2 and tim["layers"]
+    for s, n in (("test", 2), ("test_single", 2), ("fly", 4), ("fly_single", 4), ("loo", 8)):
+        pngs = sorted((gt_ws / "renders" / s).glob("*.png"))
+        assert len(pngs) == n, s
+        img = read_image(pngs[0])
+        assert img.shape == (120, 160, 3) and img.max() > 0.1
+    assert main(["-q", "evaluate", str(gt_ws), "--no-progress"]) == 0
+    m = json.loads((gt_ws / "eval" / "metrics.json").read_text())
+    s = m["summary"]
+    # built from GT, "ours" is the oracle representation: identical scores, and a sane PSNR
+    assert s["psnr"] > 20.0 and abs(s["oracle_gap_db"]) < 0.05
+    assert 0 < s["ssim"] <= 1 and 0 <= s["flip"] <= 1
+    assert s["fly_flicker_error"] >= 0 and "single_psnr" in s
+    assert (gt_ws / "eval" / "metrics.png").stat().st_size > 1000
+    assert (gt_ws / "eval" / "fly.mp4").stat().st_size > 1000
+    sbs = read_image(gt_ws / "eval" / "side_by_side" / "0000.png")
+    assert sbs.shape == (120, 4 * 160, 3)
+    # a rerun is up to date
+    assert main(["-q", "render_views", str(gt_ws), "--no-progress"]) == 0
+
+
+def test_ibr_render_command(gt_ws, tmp_path, capsys):
+    out = tmp_path / "fly"
+    assert main(["render", str(gt_ws), "--path", "fly", "--out", str(out), "--no-progress"]) == 0
+    t = json.loads((out / "timings.json").read_text())
+    assert len(t["frames"]) == 4 and all(f["ms"] > 0 for f in t["frames"])
+    assert (out / "video.mp4").is_file() and len(list(out.glob("*.png"))) == 4
+    cams = tmp_path / "cams.json"
+    shutil.copy(tiny_scene_cameras(gt_ws), cams)
+    assert main(["render", str(gt_ws), "--cameras", str(cams), "--frames", "1",
+                 "--out", str(tmp_path / "c"), "--no-progress"]) == 0
+    assert len(list((tmp_path / "c").glob("*.png"))) == 1
+
+
+def tiny_scene_cameras(ws):
+    import tomllib
+    root = tomllib.loads((ws / "ibr.toml").read_text())["input"]["path"]
+    return f"{root}/gt/test_cameras.json"
+
+
+def test_supersample_without_model_exits_2(gt_ws, tmp_path, capsys):
+    rc = main(["render", str(gt_ws), "--heldout", "--supersample", "--out", str(tmp_path / "s")])
+    assert rc == 2
+    assert "supersample" in capsys.readouterr().err.lower()
+    assert not (tmp_path / "s").exists()
+
+
+def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, capsys):
+    ws = tmp_path / "bad"
+    write_gt_workspace(tiny_scene[0], ws, layers=False)
+    (ws / "views" / "0003.png" / "mesh.ply").write_bytes(b"ply\nnot a mesh")
+    assert main(["render_views", str(ws), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "mesh.ply" in err
+    assert not (ws / "renders").exists() or not list((ws / "renders").rglob("*.png"))
+    assert main(["render_views", str(ws), "--delta", "-1"]) == 2
+    assert "delta" in capsys.readouterr().err
+
+
+def test_single_layer_workspace_renders(tiny_scene, tmp_path):
+    ws = tmp_path / "one"
+    write_gt_workspace(tiny_scene[0], ws, layers=False)
+    from ibr_pipeline.render.ibr import IBRModel
+    from ibr_pipeline.scene import cameras_from_json
+    from ibr_pipeline.workspace import Workspace
+    model = IBRModel.load(Workspace(ws), layers=True)  # no reflection outputs: single layer
+    assert not model.has_layer1
+    cam = cameras_from_json(tiny_scene[0] / "cameras.json")["0002.png"]
+    f = model.render(cam, exclude=("0002.png",))
+    assert f.color.shape == (120, 160, 3) and np.isfinite(f.color).all() and "0002.png" not in f.selected
+    model.release()
+
+
+def test_leave_one_out_when_input_has_no_test_cameras(tiny_scene, tmp_path):
+    src = tmp_path / "input"
+    shutil.copytree(tiny_scene[0], src)
+    (src / "gt" / "test_cameras.json").unlink()
+    (src / "gt" / "flythrough_cameras.json").unlink()
+    ws = tmp_path / "ws"
+    write_gt_workspace(src, ws)
+    assert main(["-q", "render_views", str(ws), "--no-progress", "--fly-frames", "3",
+                 "--leave-one-out", "false"]) == 0
+    tim = json.loads((ws / "renders" / "test" / "timings.json").read_text())
+    assert tim["source"] == "leave_one_out" and len(tim["frames"]) == 8
+    assert all(f["name"] not in f["selected"] for f in tim["frames"])  # a view never renders itself
+    assert json.loads((ws / "renders" / "fly" / "timings.json").read_text())["source"] == "interpolated"
+    assert not (ws / "renders" / "loo").exists()
+    assert main(["-q", "evaluate", str(ws), "--no-progress", "--flip", "false"]) == 0
+    m = json.loads((ws / "eval" / "metrics.json").read_text())
+    assert m["source"] == "leave_one_out" and m["summary"]["psnr"] > 8.0
+    assert "flip" not in m["summary"] and "gt_frame_change" not in m["temporal"]["ours"]
