@@ -6,13 +6,15 @@ JOBS   ?= 2
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo demo-full test test-slow clean-demo help
+.PHONY: install demo demo-full test test-slow bench clean-demo help
 
 help:
 	@echo "make demo       install, then run the pipeline on sample_data/ (results in $(OUT)/demo)"
 	@echo "make test       install, then run the test suite (fast tests)"
 	@echo "make test-slow  install, then run only the slow tests"
 	@echo "make install    system libraries (apt-get, when missing) + virtualenv $(VENV)"
+	@echo "make demo-full  the same on a full-size (640x480, 120 views) synthetic scene"
+	@echo "make bench      install, then ibr bench mirror_room --stability (charts in $(OUT)/bench)"
 
 install: $(STAMP)
 
@@ -29,12 +31,23 @@ $(STAMP): pyproject.toml requirements.lock scripts/install_system_deps.sh
 demo: install
 	$(BIN)/ibr run $(OUT)/demo --input sample_data/mirror_room --jobs $(JOBS)
 	$(BIN)/ibr status $(OUT)/demo
+	$(BIN)/ibr report $(OUT)/demo
+	@echo "demo done: open $(OUT)/demo/report/index.html"
 
 test: install
 	$(BIN)/python -m pytest
 
 test-slow: install
 	$(BIN)/python -m pytest -m slow
+
+# full size: a 640x480, 120-view synthetic mirror_room (generation ~2.5 min, then every stage)
+demo-full: install
+	test -f $(OUT)/scenes/mirror_room/gt/scene.json || $(BIN)/ibr synth mirror_room $(OUT)/scenes/mirror_room --jobs $(JOBS)
+	$(BIN)/ibr run $(OUT)/full --input $(OUT)/scenes/mirror_room --jobs $(JOBS)
+	$(BIN)/ibr report $(OUT)/full
+
+bench: install
+	$(BIN)/ibr bench mirror_room --stability --out $(OUT)/bench
 
 clean-demo:
 	rm -rf $(OUT)/demo
