@@ -166,8 +166,10 @@ def _per_view(rep: Report, name: str, title: str) -> None:
 
 
 def _media(rep: Report) -> None:
-    imgs = sorted((rep.root / "eval").glob("*.png")) if (rep.root / "eval").is_dir() else []
-    blocks = [("img", p, p.stem.replace("_", " ")) for p in imgs[:24]]
+    imgs = sorted((rep.root / "eval").rglob("*.png"), key=lambda p: (len(p.parts), p)) \
+        if (rep.root / "eval").is_dir() else []
+    blocks = [("img", p, p.relative_to(rep.root / "eval").with_suffix("").as_posix()
+               .replace("_", " ")) for p in imgs[:16]]
     vids = sorted(rep.root.glob("eval/*.mp4")) + sorted(rep.root.glob("renders/**/*.mp4"))
     if vids:
         blocks.append(("video", vids[0], f"fly-through ({vids[0].relative_to(rep.root)})"))
