@@ -84,7 +84,7 @@ def evaluate(scene_dir: Path, ws_dir: Path, sweep: tuple = (500, 1000, 2000, 400
     from ..scene import cameras_from_json
 
     cams = cameras_from_json(ws_dir / "global" / "cameras.json")
-    rows, sweep_rows = [], []
+    rows, sweep_rows, swept = [], [], 0
     for name, cam in cams.items():
         vd = ws_dir / "views" / name
         d0, d1, g = np.load(vd / "depth_init.npy"), np.load(vd / "depth.npy"), gt_depth(scene_dir, name)
@@ -114,10 +114,14 @@ def evaluate(scene_dir: Path, ws_dir: Path, sweep: tuple = (500, 1000, 2000, 400
                      "mesh_vertices": int(len(m.vertices)), "mesh_median_m": es["median_m"],
                      "mesh_band_mean_m": bs["mean_m"], "grid_band_mean_m": bg["mean_m"],
                      "mesh_coverage": es["coverage"], "grid_coverage": eg_["coverage"],
+                     "mesh_faces": int(len(m.faces)),
                      "depth_ms": json.loads((vd / "depth_report.json").read_text())["ms"],
-                     "mesh_ms": json.loads((vd / "mesh_report.json").read_text())["ms"]})
-        if len(sweep_rows) < 6:  # sweep on a few views: simplify the grid mesh to fixed targets
+                     "depth_cpu_ms": json.loads((vd / "depth_report.json").read_text()).get("cpu_ms"),
+                     "mesh_ms": json.loads((vd / "mesh_report.json").read_text())["ms"],
+                     "mesh_cpu_ms": json.loads((vd / "mesh_report.json").read_text()).get("cpu_ms")})
+        if swept < 6:  # sweep on 6 views (not 6 rows): simplify the grid mesh to fixed targets
             import fast_simplification as fs
+            n_rows = len(sweep_rows)
             for t in sweep:
                 if 2 * t >= len(gf):
                     continue
@@ -126,12 +130,16 @@ def evaluate(scene_dir: Path, ws_dir: Path, sweep: tuple = (500, 1000, 2000, 400
                 e = depth_error(render_depth(np.asarray(v2), np.asarray(f2), cam), d1)
                 sweep_rows.append({"view": name, "target": t, "vertices": int(len(np.unique(f2))),
                                    "median_m": e["median_m"], "mean_m": e["mean_m"]})
+            swept += len(sweep_rows) > n_rows  # a view too small for every target does not count
     def agg(k):
         vals = [r[k] for r in rows if r[k] is not None and np.isfinite(r[k])]
         return float(np.mean(vals)) if vals else None
     summary = {k: agg(k) for k in rows[0] if k != "view"}
     summary["depth_ms_median"] = float(np.median([r["depth_ms"] for r in rows]))
     summary["mesh_ms_median"] = float(np.median([r["mesh_ms"] for r in rows]))
+    for k in ("depth_cpu_ms", "mesh_cpu_ms"):
+        vals = [r[k] for r in rows if r[k] is not None]
+        summary[k + "_median"] = float(np.median(vals)) if vals else None
     summary["views"] = len(rows)
     return {"summary": summary, "views": rows, "sweep": sweep_rows}
 
@@ -155,6 +163,7 @@ def chart(sweep_rows: list, path: Path) -> None:
 
 
 def main(argv=None) -> int:
+    from ..executors import make_executor
     from ..pipeline import load_configs, run
     from ..stages import STAGES, stage_by_name
     from ..workspace import Workspace
@@ -167,6 +176,9 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     ap.add_argument("--output", type=Path, default=Path("bench_view_depth.json"))
     ap.add_argument("--chart", type=Path, default=Path("bench_view_mesh_sweep.png"))
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes for the two stages")
+    ap.add_argument("--no-run", action="store_true",
+                    help="only evaluate the views already in --workspace (e.g. after `ibr view_depth`)")
     a = ap.parse_args(argv)
     tmp = None
     if a.scene == "mirror_room":
@@ -177,17 +189,26 @@ def main(argv=None) -> int:
         scene = tmp / "tiny"
         generate(SynthOptions("tiny", seed=3, progress=False), scene)
     ws_dir = a.workspace or Path(tempfile.mkdtemp(prefix="bench_vd_ws_"))
-    make_workspace(scene, ws_dir, a.voxel)
-    ws = Workspace(ws_dir)
-    stages = [stage_by_name("view_depth"), stage_by_name("view_mesh")]
-    overrides = {"view_depth": {"mvs": not a.no_mvs, "device": a.device}}
-    configs = load_configs(STAGES, ws, overrides)
-    t0 = time.perf_counter()
-    run(STAGES, ws, configs, stages, force=True, progress=False)
-    wall = time.perf_counter() - t0
+    wall = None
+    c0 = time.process_time()
+    if not a.no_run:
+        make_workspace(scene, ws_dir, a.voxel)
+        ws = Workspace(ws_dir)
+        stages = [stage_by_name("view_depth"), stage_by_name("view_mesh")]
+        overrides = {"view_depth": {"mvs": not a.no_mvs, "device": a.device}}
+        configs = load_configs(STAGES, ws, overrides)
+        t0 = time.perf_counter()
+        with make_executor(a.jobs) as executor:
+            run(STAGES, ws, configs, stages, force=True, progress=False, executor=executor)
+        wall = round(time.perf_counter() - t0, 1)
     out = evaluate(scene, ws_dir)
-    out["summary"].update(scene=a.scene, voxel=a.voxel, mvs=not a.no_mvs, device=a.device,
-                          wall_s_both_stages_1_worker=round(wall, 1))
+    gm = json.loads((ws_dir / "global" / "report.json").read_text()) if (
+        ws_dir / "global" / "report.json").is_file() else None
+    out["summary"].update(scene=a.scene, workspace=str(ws_dir), mvs=not a.no_mvs, device=a.device,
+                          global_mesh=("global_mesh stage (" + str(gm.get("dense")) + ")") if gm
+                          else f"TSDF of GT depth, voxel {a.voxel} m", jobs=a.jobs,
+                          wall_s_both_stages=wall,
+                          cpu_s_main_process=round(time.process_time() - c0, 1))
     a.output.write_text(json.dumps(out, indent=1))
     chart(out["sweep"], a.chart)
     print(json.dumps(out["summary"], indent=1))

@@ -98,34 +98,43 @@ def geodesic_knn(cost: np.ndarray, region: np.ndarray, seeds: np.ndarray, k: int
     lab = np.full((m, k), -1, np.int64)
     # direct seed neighbours as the starting candidates
     seed_d = np.where(nb_seed >= 0, step, np.inf)
-    max_iter = max_iter or (2 * (h + w))
-    rows = np.arange(m)[:, None]
+    max_iter = max_iter or (2 * (h + w) + m)
+    # Label-correcting relaxation on an active frontier: only rows with a neighbour that changed in
+    # the previous sweep are recomputed (the result is the same fixed point as relaxing every row).
+    active = np.arange(m)
+    ncand = k + 4 + 4 * k
+    tri = np.tril(np.ones((ncand, ncand), bool), -1)  # [j, i]: column i comes before column j
     for _ in range(max_iter):
-        cand_d = [dist, seed_d]
-        cand_l = [lab, nb_seed]
+        if len(active) == 0:
+            break
+        a = active
+        cand_d = [dist[a], seed_d[a]]
+        cand_l = [lab[a], nb_seed[a]]
         for c in range(4):
-            has = nb_node[:, c] >= 0
-            src = np.maximum(nb_node[:, c], 0)
-            cand_d.append(np.where(has[:, None], dist[src] + step[:, c:c + 1], np.inf))
+            nn = nb_node[a, c]
+            has = nn >= 0
+            src = np.maximum(nn, 0)
+            cand_d.append(np.where(has[:, None], dist[src] + step[a, c:c + 1], np.inf))
             cand_l.append(np.where(has[:, None], lab[src], -1))
         cd = np.concatenate(cand_d, 1)
         cl = np.concatenate(cand_l, 1)
         cd[cl < 0] = np.inf
-        # keep the best distance per seed label: sort by (label, distance), drop repeats
         o = np.argsort(cd, axis=1, kind="stable")
+        rows = np.arange(len(a))[:, None]
         cd, cl = cd[rows, o], cl[rows, o]
-        o2 = np.argsort(cl, axis=1, kind="stable")  # stable: equal labels stay sorted by distance
-        sl = cl[rows, o2]
-        dup = np.zeros_like(sl, bool)
-        dup[:, 1:] = sl[:, 1:] == sl[:, :-1]
-        sd = cd[rows, o2]
-        sd[dup | (sl < 0)] = np.inf
-        o3 = np.argsort(sd, axis=1, kind="stable")[:, :k]
-        new_d, new_l = sd[rows, o3], sl[rows, o3]
-        new_l[~np.isfinite(new_d)] = -1
-        if np.array_equal(new_l, lab) and np.allclose(new_d, dist, rtol=0, atol=1e-12, equal_nan=True):
+        # a label already seen in an earlier (closer) column is a duplicate
+        dup = ((cl[:, :, None] == cl[:, None, :]) & tri[None]).any(2) | ~np.isfinite(cd)
+        o2 = np.argsort(dup, axis=1, kind="stable")[:, :k]
+        new_d, new_l = cd[rows, o2], cl[rows, o2]
+        bad = dup[rows, o2]
+        new_d[bad], new_l[bad] = np.inf, -1
+        changed = np.any(new_l != lab[a], 1) | np.any(new_d != dist[a], 1)
+        dist[a], lab[a] = new_d, new_l
+        ch = a[changed]
+        if len(ch) == 0:
             break
-        dist, lab = new_d, new_l
+        nxt = nb_node[ch].ravel()
+        active = np.unique(nxt[nxt >= 0])
     return idx, lab, dist
 
 

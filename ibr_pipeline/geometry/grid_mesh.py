@@ -67,10 +67,18 @@ def render_depth(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.
     from ..render.raycast import build_scene, camera_rays, cast
     from .normals import pixel_rays
 
-    h, w = camera.height, camera.width
     if len(faces) == 0:
-        return np.zeros((h, w))
-    scene = build_scene(vertices, faces)
+        return np.zeros((camera.height, camera.width))
+    return render_depth_scene(build_scene(vertices, faces), camera)
+
+
+def render_depth_scene(scene, camera: Camera) -> np.ndarray:
+    """`render_depth` with a prebuilt open3d RaycastingScene (`render.raycast.build_scene`), so a
+    mesh rendered into several cameras builds its BVH once."""
+    from ..render.raycast import camera_rays, cast
+    from .normals import pixel_rays
+
+    h, w = camera.height, camera.width
     o, d = camera_rays(camera)
     t = cast(scene, o, d)["t_hit"]
     rn = np.linalg.norm(pixel_rays(camera.K, h, w).reshape(-1, 3), axis=1)

@@ -37,9 +37,18 @@ class ViewDepthConfig(StageConfig):
     cost_base: float = param(0.05, "geodesic cost per pixel step on a flat colour region", min=1e-4, max=10.0)
     cost_edge: float = param(5.0, "extra geodesic cost per pixel step across a full-strength colour "
                              "edge (w = exp(-d_g), Eq. 2)", min=0.0, max=1000.0)
+    rounded_steps: bool = param(True, "also refine steps G has rounded into ramps (Eq. 1's planar "
+                                "distance between pixels 2s apart, parallel planes, at a colour "
+                                "edge: geometry/depth_rounded.py; an addition to Xu §4.2.1)")
+    rounded_strides: tuple[int, ...] = param((2, 3, 4), "half distances s (pixels) of the rounded-step test")
+    rounded_min_rel: float = param(1.0, "rounded-step test threshold, fraction of Eq. 1's lambda",
+                                   min=0.1, max=10.0)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
                              "(<image stem>.png, white = edge)")
     device: str = param("cpu", "torch device for the plane sweep", choices=("cpu", "cuda"))
+    threads: int = param(1, "torch/OpenCV threads inside one view (views already run in parallel "
+                         "with --jobs; more threads per worker oversubscribe the cores: 5x slower "
+                         "on a loaded 2-core machine)", min=1, max=64)
     progress: bool = param(False, "progress bars inside a view (the runner shows one per view)")
 
     def check(self, prefix: str) -> None:
@@ -68,17 +77,53 @@ def view_inputs(ctx: StageContext, view: str) -> list[str]:
     return keys
 
 
+_SCENE_CACHE: dict = {}
+
+
+def _global_scene(path):
+    """(mesh, open3d ray-casting scene) of the global mesh, cached per worker process (keyed by
+    path, size and mtime), so the views one worker handles load G and build its BVH once."""
+    import os
+
+    from ..errors import InputError
+    from ..io.mesh import read_ply
+    from ..render.raycast import build_scene
+
+    st = os.stat(path)
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _SCENE_CACHE:
+        mesh = read_ply(path)
+        if len(mesh.faces) == 0:
+            raise InputError(f"{path}: the global mesh has no triangles")
+        _SCENE_CACHE.clear()
+        _SCENE_CACHE[key] = (mesh, build_scene(mesh.vertices, mesh.faces))
+    return _SCENE_CACHE[key]
+
+
 def run(ctx: StageContext, view: str) -> None:
+    import cv2
+    import torch
+
+    prev = torch.get_num_threads(), cv2.getNumThreads()
+    torch.set_num_threads(ctx.config.threads)
+    cv2.setNumThreads(ctx.config.threads)
+    try:
+        _run(ctx, view)
+    finally:
+        torch.set_num_threads(prev[0])
+        cv2.setNumThreads(prev[1])
+
+
+def _run(ctx: StageContext, view: str) -> None:
     import numpy as np
 
     from ..errors import InputError
     from ..geometry import depth_refine as dr
-    from ..geometry.grid_mesh import render_depth
+    from ..geometry.grid_mesh import render_depth_scene
     from ..geometry.normals import normals_from_depth, world_normals
     from ..io.images import read_image, write_image
-    from ..io.mesh import read_ply
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     ws, cfg = ctx.ws, ctx.config
     cams = registered_cameras(ws)
     cam = cams[view]
@@ -86,9 +131,7 @@ def run(ctx: StageContext, view: str) -> None:
     if image.shape[:2] != (cam.height, cam.width):
         raise InputError(f"{ws.path(ctx.scene.view(view).image)}: image is {image.shape[1]}x"
                          f"{image.shape[0]}, its camera says {cam.width}x{cam.height}")
-    mesh = read_ply(ws.path("global/mesh.ply"))
-    if len(mesh.faces) == 0:
-        raise InputError(f"{ws.path('global/mesh.ply')}: the global mesh has no triangles")
+    mesh, scene = _global_scene(ws.path("global/mesh.ply"))
     strokes = None
     if ws.exists(_strokes_key(ctx, view)):
         s = read_image(ws.path(_strokes_key(ctx, view)))
@@ -98,12 +141,26 @@ def run(ctx: StageContext, view: str) -> None:
     timings = {}
     # 1. initial depth: G ray cast into the view (Xu §4.2)
     t = time.perf_counter()
-    depth0 = render_depth(mesh.vertices, mesh.faces, cam)
+    depth0 = render_depth_scene(scene, cam)
     timings["render_ms"] = 1000 * (time.perf_counter() - t)
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
     t = time.perf_counter()
     det = dr.detect(depth0, cam, cfg.lambda_rel, cfg.mask_side_m, cfg.mask_min_half_px)
     mask = det.mask & (depth0 > 0)
+    rounded = np.zeros_like(mask)
+    if cfg.rounded_steps:
+        import cv2
+
+        from ..geometry.depth_edges import refinement_mask
+        from ..geometry.depth_rounded import canny_edges, rounded_steps
+        rounded = rounded_steps(depth0, det.points, det.normals, canny_edges(image), cfg.lambda_rel,
+                                tuple(cfg.rounded_strides), cfg.rounded_min_rel) & ~mask
+        if rounded.any():
+            f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+            s = max(cfg.rounded_strides)
+            extra = refinement_mask(rounded, depth0, f, cfg.mask_side_m, cfg.mask_min_half_px)
+            extra |= cv2.dilate(rounded.astype(np.uint8), np.ones((2 * s + 1, 2 * s + 1), np.uint8)) > 0
+            mask |= extra & (depth0 > 0)
     timings["edges_ms"] = 1000 * (time.perf_counter() - t)
     # 3. step one of §4.2.2: masked MVS, photometric vs geometric agreement within 5 %
     t = time.perf_counter()
@@ -114,7 +171,7 @@ def run(ctx: StageContext, view: str) -> None:
     if cfg.mvs and src and mask.any():
         src_imgs = [read_image(ws.path(ctx.scene.view(s).image)) for s in src]
         src_cams = [cams[s] for s in src]
-        src_depths = [render_depth(mesh.vertices, mesh.faces, c) for c in src_cams]
+        src_depths = [render_depth_scene(scene, c) for c in src_cams]
         half = int(np.ceil(0.5 * cfg.mask_side_m * cam.K[0, 0] / max(float(np.median(depth0[mask])), 0.1)))
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
@@ -147,12 +204,12 @@ def run(ctx: StageContext, view: str) -> None:
     ws.write_json(f"{vd}/depth_report.json", {
         "view": view, "size": [cam.width, cam.height],
         "edge_pixels_init": int(det.edge_pixels.sum()), "edge_pixels": int(final.edge_pixels.sum()),
-        "mask_pixels": int(mask.sum()), "mvs_accepted": int(accepted.sum()),
+        "mask_pixels": int(mask.sum()), "rounded_step_pixels": int(rounded.sum()), "mvs_accepted": int(accepted.sum()),
         "interpolated": int(filled.sum()),
         "refined_fraction": float((accepted.sum() + filled.sum()) / max(int(mask.sum()), 1)),
         "valid_fraction": float((depth2 > 0).mean()), "strokes": strokes is not None,
         "mvs": mvs_stats, "timings_ms": {k: round(v, 1) for k, v in timings.items()},
-        "ms": round(ms, 1)})
+        "ms": round(ms, 1), "cpu_ms": round(1000 * (time.process_time() - c0), 1)})
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",

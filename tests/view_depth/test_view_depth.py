@@ -191,6 +191,11 @@ def test_stages_run_through_cli(tiny_ws, tiny_scene):
         rep = json.loads((vd / "mesh_report.json").read_text())
         assert rep["vertices"] <= rep["budget_vertices"] * 1.1 + 200
     assert checked >= 2
+    # the bench's simplification sweep covers 6 views (it counted rows, i.e. one view, before)
+    from ibr_pipeline.bench.view_depth import evaluate
+    out = evaluate(tiny_scene[0], tiny_ws, sweep=(100, 200))
+    assert len({r["view"] for r in out["sweep"]}) >= min(6, checked)
+    assert out["summary"]["depth_cpu_ms_median"] > 0
     # up to date the second time
     from ibr_pipeline.cli import main as m2
     assert m2(["status", str(tiny_ws)]) == 0
