@@ -36,29 +36,67 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
-def _scatter(rows: list[dict], xkey, xlabel: str, path: Path, logx: bool = False) -> Path | None:
+def points(rows: list[dict], axis: str) -> list[tuple[str, float, float, str]]:
+    """(label, x, quality, kind) for one chart. kind: 'ours' for every grid setting; for the
+    `default` run also its baselines, scored by the evaluate stage on the same held-out views:
+    'single' (no decomposition: its own render time, preprocessing without the reflection stage,
+    model without the layer textures) and 'oracle' (ground-truth geometry and layers: render-time
+    chart only, since it has no preprocessing or model of its own)."""
+    out = []
+    for r in rows:
+        if r.get("group") not in ("grid", "baseline"):
+            continue
+        m = r.get("metrics") or {}
+        tex = ((r.get("model_bytes") or {}).get("textures") or 0) / 1e6 / max(1, r.get("views") or 1)
+        x = {"render": r.get("render_ms"), "preprocess": r.get("preprocess_s"),
+             "size": r.get("mb_per_view")}[axis]
+        if x is not None and quality(r) is not None:
+            out.append((r["setting"], x, quality(r), "ours"))
+        if r.get("setting") != "default":
+            continue
+        secs = r.get("stage_seconds") or {}
+        xs = {"render": r.get("render_ms_single"),
+              "preprocess": None if r.get("preprocess_s") is None
+              else r["preprocess_s"] - secs.get("reflection", 0.0),
+              "size": None if r.get("mb_per_view") is None else r["mb_per_view"] - tex}[axis]
+        if xs is not None and m.get("single_psnr") is not None:
+            out.append(("single layer", xs, m["single_psnr"], "single"))
+        if axis == "render" and x is not None and m.get("oracle_psnr") is not None:
+            out.append(("oracle", x, m["oracle_psnr"], "oracle"))
+    return out
+
+
+STYLE = {"ours": ("o", "C0"), "single": ("s", "C1"), "oracle": ("*", "C2")}
+
+
+def _scatter(rows: list[dict], axis: str, xlabel: str, path: Path, logx: bool = False) -> Path | None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    pts = [(xkey(r), quality(r), r) for r in rows if r.get("group") in ("grid", "baseline")]
-    pts = [(x, y, r) for x, y, r in pts if x is not None and y is not None]
+    pts = points(rows, axis)
     if not pts:
         return None
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=110)
-    for x, y, r in pts:
-        marker = "s" if r["group"] == "baseline" else "o"
-        ax.scatter([x], [y], marker=marker, s=36, color="C1" if r["group"] == "baseline" else "C0")
-        ax.annotate(r["setting"], (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
-    front = pareto([(x, y) for x, y, _ in pts])
-    ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "--", color="C2",
-            label="Pareto front")
+    for kind, (marker, color) in STYLE.items():
+        sel = [p for p in pts if p[3] == kind]
+        if sel:
+            ax.scatter([p[1] for p in sel], [p[2] for p in sel], marker=marker, s=40, color=color,
+                       label={"ours": "ours (settings)", "single": "single-layer baseline",
+                              "oracle": "oracle (GT geometry + layers)"}[kind])
+    for label, x, y, _ in pts:
+        ax.annotate(label, (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+    ours = [p for p in pts if p[3] == "ours"]
+    front = pareto([(p[1], p[2]) for p in ours])
+    if len(front) > 1:
+        ax.plot([ours[i][1] for i in front], [ours[i][2] for i in front], "--", color="C3",
+                label="Pareto front (ours)")
     ax.set_xlabel(xlabel)
     ax.set_ylabel(QUALITY[1])
     if logx:
         ax.set_xscale("log")
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="lower right", fontsize=7)
     ax.set_title(f"{rows[0].get('scene')}: quality vs {xlabel.split(' (')[0]}", fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
@@ -137,12 +175,9 @@ def tables(rows: list[dict]) -> tuple[str, str]:
 def draw_all(results: Path, out: Path) -> list[Path]:
     rows = load(results)
     written = [
-        _scatter(rows, lambda r: r.get("render_ms"), "render time (ms/frame)",
-                 out / "quality_vs_render_ms.png"),
-        _scatter(rows, lambda r: r.get("preprocess_s"), "preprocessing time (s)",
-                 out / "quality_vs_preprocess_s.png"),
-        _scatter(rows, lambda r: r.get("mb_per_view"), "model size (MB per view)",
-                 out / "quality_vs_model_mb.png"),
+        _scatter(rows, "render", "render time (ms/frame)", out / "quality_vs_render_ms.png"),
+        _scatter(rows, "preprocess", "preprocessing time (s)", out / "quality_vs_preprocess_s.png"),
+        _scatter(rows, "size", "model size (MB per view)", out / "quality_vs_model_mb.png"),
         _stability(rows, out),
     ]
     grid, stab = tables(rows)

@@ -47,6 +47,7 @@ class RenderSettings:
     fill_holes: bool = True                       # §5.1.4 holes
     hole_decay_px: float = blend.HOLE_DECAY_PX
     hysteresis: bool = True                       # §5.1.2 temporal hysteresis
+    max_views: int = 0                            # cap on blended views (0 = all selected; ours)
 
 
 @dataclass
@@ -145,6 +146,8 @@ class IBRModel:
                     [self._index[n] for n in previous.selected if n in self._index])
         sel = selection.select_views(camera.R, camera.center, self.axes, self.centers, d, avail,
                                      prev, s.max_angle, s.max_dist, s.angle_bins, s.dist_bins)
+        if s.max_views > 0:
+            sel = sel[:s.max_views]  # select_views sorts by d_k: keep the closest
         return sel, d
 
     # --- GL resources -------------------------------------------------------------------------

@@ -45,6 +45,9 @@ class RenderViewsConfig(StageConfig):
     leave_one_out: bool = param(True, "also render every capture view from the others (renders/loo)")
     fly_frames: int = param(0, "render at most this many fly-through frames (0 = all; a generated "
                             "path has 48)", min=0, max=100000)
+    max_views: int = param(0, "blend at most this many of the selected views, smallest d_k first "
+                           "(0 = every view §5.1.2 selects; a speed/quality knob for ibr bench)",
+                           min=0, max=72)
 
 
 def render_settings(cfg):
@@ -54,7 +57,7 @@ def render_settings(cfg):
                           max_dist=cfg.max_dist, cost_margin=cfg.cost_margin,
                           depth_tol=cfg.depth_tol, feather_px=cfg.feather_px,
                           edge_decay_px=cfg.edge_decay_px, fill_holes=cfg.fill_holes,
-                          hysteresis=cfg.hysteresis)
+                          hysteresis=cfg.hysteresis, max_views=getattr(cfg, "max_views", 0))
 
 
 def _cameras(ctx: StageContext, key: str) -> dict:
