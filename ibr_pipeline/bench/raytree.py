@@ -2,7 +2,7 @@
 
   python -m ibr_pipeline.bench.raytree [--cases mirror,chrome,crystal,pane] [--size 320x240]
          [--supersample 3] [--move 5 --yaw 3] [--speed-size 1280x720] [--repeats 5]
-         [--device cpu|cuda] [--threads 1] [--out out/bench_raytree] [--skip-speed]
+         [--device cpu|cuda] [--threads 2] [--out out/bench_raytree] [--skip-speed]
 
 Accuracy: for every case (raytree.scenarios.CASES) a ray tree is traced at an old camera and the
 exact render at the new camera (moved `--move` cm right and yawed `--yaw` deg); PSNR of our warp
@@ -11,7 +11,8 @@ pixels except the disoccluded ones (first hit not seen by the old camera) and in
 regions (first surface reflective / refractive). Writes a Fig. 7-like side-by-side image
 (naive | ground truth | ours) and a Fig. 8-like plot of the gradient-descent energy per step.
 Speed: median wall time per frame of decode + warp + fill + composite at `--speed-size`, three
-nodes, with a Table 1-like breakdown per stage. JSON: OUT/bench_raytree.json.
+nodes, with a Table 1-like breakdown per stage, and the median CPU time (time.process_time, all
+threads of this process) per frame, which is less inflated than wall time on a shared machine. JSON: OUT/bench_raytree.json.
 """
 from __future__ import annotations
 
@@ -34,7 +35,8 @@ def _size(s: str) -> tuple[int, int]:
     return w, h
 
 
-def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=True) -> list[dict]:
+def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=True,
+             figures: Path | None = None) -> list[dict]:
     from ..io.images import write_image
     from ..metrics import psnr
     from ..raytree.decode import DecodeOptions, decode
@@ -65,6 +67,9 @@ def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=Tr
                 row["psnr_specular_naive"] = round(psnr(nv, c.gt_image, spec), 3)
                 row["specular_gain_db"] = round(row["psnr_specular"] - row["psnr_specular_naive"], 3)
                 row["psnr_incl_disoccluded"] = round(psnr(img, c.gt_image), 3)
+                dif = keep & ~c.specular   # first surface diffuse in the new view
+                row["psnr_diffuse_only"] = round(psnr(img, c.gt_image, dif), 3)
+                row["psnr_diffuse_only_naive"] = round(psnr(nv, c.gt_image, dif), 3)
                 row["undefined_specular"] = [int((g & ~d).sum()) for g, d in zip(r.region[1:], r.defined[1:])]
                 panels.append(np.concatenate([nv, c.gt_image, img], 1))
                 if name == "chrome" or (hist is None and r.history):
@@ -74,20 +79,39 @@ def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=Tr
             print(json.dumps(row), flush=True)
     out.mkdir(parents=True, exist_ok=True)
     if panels:  # Fig. 7: naive | ground truth | ours, display gamma 2.2
-        write_image(out / "fig7_side_by_side.png", np.concatenate(panels, 0).clip(0, 1) ** (1 / 2.2))
+        fig7 = np.concatenate(panels, 0).clip(0, 1) ** (1 / 2.2)
+        write_image(out / "fig7_side_by_side.png", fig7)
+        if figures is not None:
+            _small_png(fig7, figures / "raytree_fig7.png", [r["case"] for r in rows])
     if hist is not None:
         _plot_energy(hist, out / "fig8_energy.png")
+        if figures is not None:
+            _plot_energy(hist, figures / "raytree_fig8.png", dpi=80)
     return rows
 
 
-def _plot_energy(hist, path: Path, n: int = 12) -> None:
+def _small_png(img: np.ndarray, path: Path, names: list[str]) -> None:
+    """Commit-sized Fig. 7: the side-by-side with column / row labels, 80-colour palette PNG (< 300 KB)."""
+    from PIL import Image, ImageDraw
+    path.parent.mkdir(parents=True, exist_ok=True)
+    h, w = img.shape[0] // max(len(names), 1), img.shape[1] // 3
+    im = Image.fromarray((img * 255 + 0.5).astype(np.uint8))
+    d = ImageDraw.Draw(im)
+    for r, name in enumerate(names):
+        for col, label in enumerate(("naive", "ground truth", "ours")):
+            d.rectangle([col * w, r * h, col * w + 8 + 7 * len(f"{name}: {label}"), r * h + 13], fill=(0, 0, 0))
+            d.text((col * w + 4, r * h + 1), f"{name}: {label}", fill=(255, 255, 0))
+    im.quantize(80, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(path, optimize=True)
+
+
+def _plot_energy(hist, path: Path, n: int = 12, dpi: int = 120) -> None:
     """Fig. 8: Delta (degrees) over the gradient-descent steps for sample pixels."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     name, h = hist
     node = sorted(h)[0]
-    pix, E = h[node]
+    pix, E = h[node][:2]
     E = np.degrees(E)
     moving = np.nonzero(E[0] > E[-1] + 1e-3)[0]
     pick = moving if len(moving) else np.arange(E.shape[1])
@@ -105,7 +129,8 @@ def _plot_energy(hist, path: Path, n: int = 12) -> None:
     ax.set_title(f"specular search energy, case {name} (node {node})")
     ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
 
 
@@ -116,16 +141,25 @@ def speed(size, repeats, device) -> dict:
     from ..raytree.warp import WarpOptions, warp
 
     c = make_case("chrome", *size, supersample=1)
-    runs = []
+    runs, cpu = [], []
     o = WarpOptions()
     warp(c.tree, c.new, o, device=device)  # warm-up (allocations, CUDA context)
     for _ in range(repeats):
-        runs.append(warp(c.tree, c.new, o, device=device).timings)
+        p0 = time.process_time()   # CPU time of this process (all its threads): less affected
+        runs.append(warp(c.tree, c.new, o, device=device).timings)  # by other users' load
+        cpu.append(time.process_time() - p0)
     keys = list(runs[0])
     med = {k: round(1e3 * float(np.median([r.get(k, 0.0) for r in runs])), 2) for k in keys}
+    try:
+        load = open("/proc/loadavg").read().split()[:3]
+    except OSError:
+        load = None
     return {"size": list(size), "nodes": c.tree.n_nodes, "device": str(device),
             "threads": torch.get_num_threads(), "repeats": repeats,
-            "median_ms": med, "total_runs_ms": [round(r["total"] * 1e3, 1) for r in runs]}
+            "median_ms": med, "total_runs_ms": [round(r["total"] * 1e3, 1) for r in runs],
+            "cpu_ms_per_frame_median": round(1e3 * float(np.median(cpu)), 1),
+            "cpu_runs_ms": [round(x * 1e3, 1) for x in cpu],
+            "loadavg": load}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -141,9 +175,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speed-size", type=_size, default=(1280, 720))
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch default)")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (2; 0: torch default)")
     ap.add_argument("--out", type=Path, default=Path("out/bench_raytree"))
     ap.add_argument("--skip-speed", action="store_true")
+    ap.add_argument("--figures", type=Path, help="also write commit-sized raytree_fig7.png / "
+                    "raytree_fig8.png here (e.g. docs/figures)")
     ap.add_argument("--skip-accuracy", action="store_true")
     args = ap.parse_args(argv)
     import torch
@@ -163,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"command": "python -m ibr_pipeline.bench.raytree " + " ".join(argv or sys.argv[1:])}
     if not args.skip_accuracy:
         result["accuracy"] = accuracy(cases, args.size, args.supersample, args.move, args.yaw,
-                                      args.device, args.out)
+                                      args.device, args.out, figures=args.figures)
     if not args.skip_speed:
         result["speed"] = speed(args.speed_size, args.repeats, args.device)
         print(json.dumps(result["speed"], indent=1))

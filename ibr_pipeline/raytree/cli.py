@@ -44,6 +44,7 @@ def register(sub) -> None:
     alg.add_argument("--eps-deg", type=float, default=1.0, help="undefined above this Delta (1 deg)")
     alg.add_argument("--no-fill", action="store_true", help="no push-pull hole filling (§3.5)")
     alg.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda")
+    alg.add_argument("--threads", type=int, default=2, help="torch CPU threads (2: this 2-core machine)")
     p.add_argument("--save-tree", type=Path, help="also write the tree in our encoding (§3.2)")
     p.add_argument("--json", action="store_true", help="print the result summary as JSON")
     p.set_defaults(func=main)
@@ -88,8 +89,12 @@ def _check_args(args) -> None:
         raise InputError("give --out (and/or --save-tree)")
     if args.out is not None and args.out.suffix.lower() != ".png":
         raise InputError(f"--out {args.out}: must be a .png file")
+    if not 1 <= args.threads <= 256:
+        raise InputError(f"--threads must be in [1, 256], got {args.threads}")
+    import torch
+    if args.device == "cpu":
+        torch.set_num_threads(args.threads)
     if args.device.startswith("cuda"):
-        import torch
         if not torch.cuda.is_available():
             raise InputError(f"--device {args.device}: CUDA is not available")
     elif args.device != "cpu":

@@ -38,14 +38,17 @@ class Decoded:
     K: torch.Tensor                 # (3, 3)
     cam_from_world: torch.Tensor    # (4, 4)
     center: torch.Tensor            # (3,) c_old
-    rgb: list[torch.Tensor]         # per node (H, W, 3)
+    rgb: list[torch.Tensor]         # per node (H, W, 3) (specular nodes: zero outside `box`)
     depth: list[torch.Tensor]       # per node (H, W)
     valid: list[torch.Tensor]       # per node (H, W) bool
     pos: list[torch.Tensor]         # per node (H, W, 3) world positions (W_d, W_r, W_f, ...)
     normal: list[torch.Tensor | None]  # per node (H, W, 3) normals (reconstructed) or None
-    dirs: list[torch.Tensor | None] = field(default_factory=list)  # per node incoming unit dirs
+    dirs: list[torch.Tensor | None] = field(default_factory=list)  # per node unit dirs (in `box`)
     ior: torch.Tensor | None = None      # (H, W)
     fresnel: torch.Tensor | None = None  # (H, W) long
+    box: tuple | None = None             # (y0, y1, x0, x1): the old pixels with a specular
+                                         # node (+ margin); normals / W_s are computed there only
+    cache: dict = field(default_factory=dict)  # samplers etc. reused by every warp of this tree
 
     @property
     def size(self) -> tuple[int, int]:
@@ -114,7 +117,7 @@ def decode(tree: RayTree, device: str | torch.device = "cpu", options: DecodeOpt
     T = torch.as_tensor(tree.cam_from_world, **f32)
     center = -T[:3, :3].T @ T[:3, 3]
     n_nodes = tree.n_nodes
-    rgb = [torch.as_tensor(np.asarray(tree.rgb[i], np.float32), device=dev) for i in range(n_nodes)]
+    rgb = [torch.from_numpy(np.asarray(tree.rgb[0])).to(**f32)]
     depth = [torch.as_tensor(tree.depth[i], **f32) for i in range(n_nodes)]
     bits = torch.as_tensor(tree.valid, device=dev).to(torch.int32)
     valid = [((bits >> i) & 1) > 0 for i in range(n_nodes)]
@@ -123,42 +126,70 @@ def decode(tree: RayTree, device: str | torch.device = "cpu", options: DecodeOpt
     Wd = ops.unproject(K, T, depth[0])
     ops.sync(dev)
     t1 = time.perf_counter()
+    # Normals and specular positions matter only where a specular node exists: compute them on
+    # the bounding box of those pixels, grown by the normal stencil (forward difference + the
+    # 7x7 blur radius + 1), so the values there are exactly those of a full-image pass.
+    H, W = depth[0].shape
+    spec = (bits >> 1) > 0
+    margin = opts.normal_ksize // 2 + 3
+    box = ops.bbox(spec & valid[0], margin) if n_nodes > 1 else None
+    if box is None:
+        box = (0, 0, 0, 0)
+    y0, y1, x0, x1 = box
+    crop = (slice(y0, y1), slice(x0, x1))
+    nd = torch.zeros(H, W, 3, **f32)
     if opts.normals == "exact":
         nd = ops.normalize(torch.as_tensor(tree.normal, **f32))
-    else:
-        nd = reconstruct_normals(Wd, valid[0], center, opts.normal_ksize, opts.normal_sigma,
-                                 opts.normal_diff)
+    elif y1 > y0 and x1 > x0:
+        nd[crop] = reconstruct_normals(Wd[crop], valid[0][crop], center, opts.normal_ksize,
+                                       opts.normal_sigma, opts.normal_diff)
     ops.sync(dev)
     t2 = time.perf_counter()
     ior = torch.as_tensor(tree.ior, **f32)
     fres = torch.as_tensor(tree.fresnel, device=dev).long()
     pos = [Wd] + [None] * (n_nodes - 1)
     normal = [nd] + [None] * (n_nodes - 1)
-    dirs = [ops.normalize(Wd - center)] + [None] * (n_nodes - 1)
+    # incoming directions and the specular nodes' radiance: needed in the box only (zero outside)
+    dirs = [torch.zeros(H, W, 3, **f32)] + [None] * (n_nodes - 1)
+    dirs[0][crop] = ops.normalize(Wd[crop] - center)
+    for i in range(1, n_nodes):
+        rgb.append(torch.zeros(H, W, 3, **f32))
+        rgb[i][crop] = torch.from_numpy(np.asarray(tree.rgb[i][y0:y1, x0:x1])).to(**f32)
+    pos_c = [Wd[crop]] + [None] * (n_nodes - 1)
+    nrm_c = [nd[crop]] + [None] * (n_nodes - 1)
+    dir_c = [dirs[0][crop]] + [None] * (n_nodes - 1)
     for i in range(1, n_nodes):
         p = int(tree.parent[i])
-        d_in, n_p = dirs[p], normal[p]
+        d_in, n_p = dir_c[p], nrm_c[p]
         if n_p is None:  # deeper node: reconstruct the parent's normals from its positions
-            n_p = normal[p] = reconstruct_normals(pos[p], valid[p], None, opts.normal_ksize,
-                                                  opts.normal_sigma, opts.normal_diff)
-            n_p = torch.where(((d_in * n_p).sum(-1, keepdim=True) > 0), -n_p, n_p)
+            n_p = reconstruct_normals(pos_c[p], valid[p][crop], None, opts.normal_ksize,
+                                      opts.normal_sigma, opts.normal_diff)
+            n_p = nrm_c[p] = torch.where(((d_in * n_p).sum(-1, keepdim=True) > 0), -n_p, n_p)
+            normal[p] = torch.zeros(H, W, 3, **f32)
+            normal[p][crop] = n_p
         if int(tree.kind[i]) == REFLECTIVE:
             r = ops.reflect(d_in, n_p)                                  # §3.3 Eq. 1
-            tir = torch.zeros_like(valid[i])
+            tir = torch.zeros_like(valid[i][crop])
         else:
-            eta = eta_of(ior, fres)
+            eta = eta_of(ior[crop], fres[crop])
             r, tir = ops.refract(d_in, n_p, eta)                        # §3.3 refracted position
         r = ops.normalize(r)
-        valid[i] = valid[i] & valid[p] & ~tir & (depth[i] > 0)
-        pos[i] = pos[p] + depth[i][..., None] * r                       # w = w_parent + delta r_hat
-        dirs[i] = r
+        v = torch.zeros_like(valid[i])
+        v[crop] = valid[i][crop] & valid[p][crop] & ~tir & (depth[i][crop] > 0)
+        valid[i] = v
+        pos_c[i] = pos_c[p] + depth[i][crop][..., None] * r             # w = w_parent + delta r_hat
+        dir_c[i] = r
+        pos[i] = torch.zeros(H, W, 3, **f32)
+        pos[i][crop] = pos_c[i]
+        dirs[i] = torch.zeros(H, W, 3, **f32)
+        dirs[i][crop] = r
     ops.sync(dev)
     t3 = time.perf_counter()
     if timings is not None:
         timings["decode_diffuse"] = t1 - tic
         timings["decode_normal"] = t2 - t1
         timings["decode_specular"] = t3 - t2
-    return Decoded(tree, dev, K, T, center, rgb, depth, valid, pos, normal, dirs, ior, fres)
+    return Decoded(tree, dev, K, T, center, rgb, depth, valid, pos, normal, dirs, ior, fres, box)
 
 
 def eta_of(ior: torch.Tensor, fresnel: torch.Tensor) -> torch.Tensor:

@@ -25,6 +25,9 @@ class Flow:
     ok: torch.Tensor       # (Hn, Wn) bool, flow defined (converged)
     splat_hit: torch.Tensor  # (Hn, Wn) bool, a point was splatted here (Fig. 4b)
     filled: torch.Tensor   # (Hn, Wn) bool, defined after the 3x3 fill (Fig. 4c)
+    pix: torch.Tensor | None = None      # (K,) flat indices of the ok new pixels (any order)
+    taps: ops.Taps | None = None         # old-image bilinear taps of src at those pixels
+    sampler: ops.Sampler | None = None   # the root sampler the taps belong to
 
 
 def splat_keys(uv: torch.Tensor, z: torch.Tensor, valid: torch.Tensor, new_size: tuple[int, int]):
@@ -35,36 +38,37 @@ def splat_keys(uv: torch.Tensor, z: torch.Tensor, valid: torch.Tensor, new_size:
     n_old = H * W
     t = torch.round(uv.reshape(-1, 2)).long()
     zf = z.reshape(-1)
-    ok = valid.reshape(-1) & (zf > 1e-6) & (t[:, 0] >= 0) & (t[:, 0] < Wn) & (t[:, 1] >= 0) & (t[:, 1] < Hn)
-    zq = torch.round(zf.clamp(0, 1e4) * 1e5).long()  # 10 um depth quantum for the depth test
-    key = zq * n_old + torch.arange(n_old, device=uv.device)
+    tx, ty = t[:, 0], t[:, 1]
+    ok = valid.reshape(-1) & (zf > 1e-6) & (tx >= 0) & (tx < Wn) & (ty >= 0) & (ty < Hn)
+    sel = torch.nonzero(ok).squeeze(-1)
+    zq = torch.round(zf[sel].clamp(0, 1e4) * 1e5).long()  # 10 um depth quantum for the depth test
+    key = zq * n_old + sel
     buf = torch.full((Hn * Wn,), _BIG, dtype=torch.int64, device=uv.device)
-    buf.scatter_reduce_(0, (t[:, 1] * Wn + t[:, 0])[ok], key[ok], reduce="amin")
+    buf.scatter_reduce_(0, ty[sel] * Wn + tx[sel], key, reduce="amin")
     return buf
 
 
 def closest_3x3(keys: torch.Tensor, new_size: tuple[int, int]) -> torch.Tensor:
     """§3.4: "the flow at each pixel is replaced by the flow of the pixel that is closest to the
-    camera in a 3x3 neighborhood" (min key over the 9 neighbours)."""
+    camera in a 3x3 neighborhood" (min key over the 9 neighbours, as two separable 3-tap mins)."""
     Wn, Hn = new_size
-    k = torch.nn.functional.pad(keys.view(Hn, Wn), (1, 1, 1, 1), value=_BIG)
-    out = k[1:-1, 1:-1].clone()
-    for dy in range(3):
-        for dx in range(3):
-            out = torch.minimum(out, k[dy:dy + Hn, dx:dx + Wn])
-    return out.reshape(-1)
+    k = torch.nn.functional.pad(keys.view(1, Hn, Wn), (1, 1, 1, 1), value=_BIG)[0]
+    r = torch.minimum(torch.minimum(k[:, :-2], k[:, 1:-1]), k[:, 2:])      # (Hn + 2, Wn)
+    return torch.minimum(torch.minimum(r[:-2], r[1:-1]), r[2:]).reshape(-1)
 
 
 def diffuse_flow(pos: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, P_new: torch.Tensor,
                  new_size: tuple[int, int], fpi_eps: float = 0.5, rel_tol: float = 0.05,
-                 fallback: bool = True) -> Flow:
+                 fallback: bool = True, sampler: ops.Sampler | None = None) -> Flow:
     """Backward diffuse flow for positions `pos` (H, W, 3) seen at old z-depth `depth` (H, W).
 
     fpi_eps: convergence threshold of the fixed-point step in new-image pixels (bilinear
     residual; 2 x fpi_eps where the old neighbourhood is not smooth and the nearest tap is used).
     fallback: where the 3x3-filled candidate fails the test, also try the directly splatted
     point (our addition: keeps background pixels next to a foreground edge instead of leaving a
-    hole for push-pull)."""
+    hole for push-pull); evaluated only on the pixels that failed.
+    The result also lists the converged pixels and their bilinear taps, so the caller samples
+    every root buffer at the sub-pixel fixed-point location without recomputing them."""
     ops.check(pos, (None, None, 3), "positions")
     ops.check(valid, tuple(pos.shape[:2]), "valid")
     ops.check(depth, tuple(pos.shape[:2]), "depth")
@@ -76,32 +80,48 @@ def diffuse_flow(pos: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, P_
     uv, z = ops.project(P_new, pos)            # l_new = project(M_new, W_d)  (§3.4)
     direct = splat_keys(uv, z, valid, new_size)
     filled = closest_3x3(direct, new_size)
-    sampler = ops.Sampler(valid, depth, rel_tol)
+    sampler = sampler or ops.Sampler(valid, depth, rel_tol)
     uv_flat = uv.reshape(-1, 2)
-    v, u = torch.meshgrid(torch.arange(Hn, device=dev), torch.arange(Wn, device=dev), indexing="ij")
-    p = torch.stack([u, v], -1).reshape(-1, 2).to(pos.dtype)
+    uv_chw = sampler.chw(uv)
+    eps2 = fpi_eps * fpi_eps
 
-    def fpi(keys):
-        has = keys != _BIG
-        idx = torch.where(has, keys % n_old, torch.zeros_like(keys))
-        x0 = torch.stack([idx % W, idx // W], -1).to(pos.dtype)
-        # one fixed-point step (Bowles et al. 2012): x1 = l_new - f^-1(x0) = x0 + (l_new - uv(x0))
-        x1 = x0 + (p - uv_flat[idx])
-        uv1, smooth, defined = sampler.sample(uv.reshape(H, W, 2), x1)
-        res = (uv1 - p).norm(dim=-1)
-        conv = has & defined & (res < torch.where(smooth, torch.full_like(res, fpi_eps),
-                                                  torch.full_like(res, 2 * fpi_eps)))
-        inside = (x1[:, 0] > -0.5) & (x1[:, 0] < W - 0.5) & (x1[:, 1] > -0.5) & (x1[:, 1] < H - 0.5)
-        return x1, conv & inside
+    def xy(flat_idx, width):
+        """(N, 2) float (x, y) of flat pixel indices (float32 is exact below 2^24 pixels)."""
+        f = flat_idx.to(pos.dtype)
+        y = torch.floor(f / width)
+        return torch.stack([f - y * width, y], -1)
 
-    x1, ok = fpi(filled)
+    def fpi(keys, pix):
+        """One fixed-point step (Bowles et al. 2012) for the new pixels `pix` from the old pixels
+        encoded in keys[pix]: x1 = l_new - f^-1(x0) = x0 + (l_new - uv(x0)); converged when the
+        bilinear re-projection of x1 lands within fpi_eps of l_new."""
+        idx = keys[pix] % n_old
+        p = xy(pix, Wn)
+        x1 = xy(idx, W) + (p - uv_flat[idx])
+        t = sampler.taps(x1)
+        uv1, smooth, defined = sampler.sample(uv_chw, x1, t)
+        res2 = ((uv1 - p) ** 2).sum(-1)
+        conv = defined & (res2 < torch.where(smooth, eps2, 4 * eps2)) & \
+            (x1[:, 0] > -0.5) & (x1[:, 0] < W - 0.5) & (x1[:, 1] > -0.5) & (x1[:, 1] < H - 0.5)
+        return x1, conv
+
+    src = torch.zeros(Hn * Wn, 2, device=dev, dtype=pos.dtype)
+    ok = torch.zeros(Hn * Wn, dtype=torch.bool, device=dev)
+    cand = torch.nonzero(filled != _BIG).squeeze(-1)
+    x1, conv = fpi(filled, cand)
+    src[cand] = x1
+    ok[cand] = conv
     if fallback:
-        x1b, okb = fpi(direct)
-        use_b = ~ok & okb
-        x1 = torch.where(use_b[:, None], x1b, x1)
-        ok = ok | okb
-    return Flow(src=x1.view(Hn, Wn, 2), ok=ok.view(Hn, Wn), splat_hit=(direct != _BIG).view(Hn, Wn),
-                filled=(filled != _BIG).view(Hn, Wn))
+        fb = torch.nonzero(~ok & (direct != _BIG)).squeeze(-1)
+        if len(fb):
+            xb, cb = fpi(direct, fb)
+            fb, xb = fb[cb], xb[cb]
+            src[fb] = xb
+            ok[fb] = True
+    pix = torch.nonzero(ok).squeeze(-1)
+    taps = sampler.taps(src[pix])   # the taps every root buffer is read with
+    return Flow(src=src.view(Hn, Wn, 2), ok=ok.view(Hn, Wn), splat_hit=(direct != _BIG).view(Hn, Wn),
+                filled=(filled != _BIG).view(Hn, Wn), pix=pix, taps=taps, sampler=sampler)
 
 
 def projection_matrix(K, cam_from_world, device) -> torch.Tensor:

@@ -16,26 +16,46 @@ from . import ops
 
 def push_pull(img: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Fill the invalid pixels of (H, W, C) from the valid ones; valid pixels are unchanged.
-    An image with no valid pixel is returned as zeros."""
+    An image with no valid pixel is returned as zeros.
+
+    The finest push touches only the holes: their bilinear upsampled value (the same formula as
+    F.interpolate(..., align_corners=False)) is computed at the hole pixels alone."""
     ops.check(img, (None, None, None), "image")
     ops.check(valid, tuple(img.shape[:2]), "valid")
     if bool(valid.all()):
         return img
     if not bool(valid.any()):
         return torch.zeros_like(img)
-    c = (img.permute(2, 0, 1)[None] * valid[None, None]).to(img.dtype)
-    w = valid[None, None].to(img.dtype)
-    levels = [(c, w)]
+    H, W, C = img.shape
+    w = valid.to(img.dtype)[None, None]
+    c = (img * w[0, 0, ..., None]).permute(2, 0, 1)[None]
+    levels = []
     while min(c.shape[-2:]) > 1:
         # pull: weighted 2x2 average of valid children (ceil_mode keeps odd borders)
         cs = F.avg_pool2d(c, 2, ceil_mode=True)
         ws = F.avg_pool2d(w, 2, ceil_mode=True)
-        c = torch.where(ws > 0, cs / ws.clamp_min(1e-12), torch.zeros_like(cs))
         w = (ws > 0).to(img.dtype)
-        c = c * w
+        c = cs / ws.clamp_min(1e-12) * w
         levels.append((c, w))
+    if not levels:  # a 1-pixel-high / -wide image: nothing to pull from (holes stay 0)
+        return img * valid[..., None].to(img.dtype)
     filled = levels[-1][0]
     for c, w in reversed(levels[:-1]):
         up = F.interpolate(filled, size=c.shape[-2:], mode="bilinear", align_corners=False)
         filled = torch.where(w > 0, c, up)  # push only into invalid pixels
-    return filled[0].permute(1, 2, 0)
+    # finest level: bilinear upsample of `filled` (h, w) evaluated at the holes only
+    h, wd = filled.shape[-2:]
+    coarse = filled[0].permute(1, 2, 0).reshape(h * wd, C)
+    hole = torch.nonzero(~valid.reshape(-1)).squeeze(-1)
+    ys = ((hole // W).to(img.dtype) + 0.5) * (h / H) - 0.5
+    xs = ((hole % W).to(img.dtype) + 0.5) * (wd / W) - 0.5
+    ys, xs = ys.clamp_min(0), xs.clamp_min(0)
+    y0, x0 = ys.floor(), xs.floor()
+    ly, lx = (ys - y0)[:, None], (xs - x0)[:, None]
+    y0, x0 = y0.long().clamp(max=h - 1), x0.long().clamp(max=wd - 1)
+    y1, x1 = (y0 + 1).clamp(max=h - 1), (x0 + 1).clamp(max=wd - 1)
+    val = (1 - ly) * ((1 - lx) * coarse[y0 * wd + x0] + lx * coarse[y0 * wd + x1]) + \
+        ly * ((1 - lx) * coarse[y1 * wd + x0] + lx * coarse[y1 * wd + x1])
+    out = img.reshape(H * W, C).clone()
+    out[hole] = val
+    return out.view(H, W, C)

@@ -73,65 +73,156 @@ def gaussian_kernel(ksize: int, sigma: float, device, dtype=torch.float32) -> to
 
 def blur_masked(img: torch.Tensor, mask: torch.Tensor, ksize: int = 7, sigma: float = 0.0) -> torch.Tensor:
     """Separable Gaussian blur of (H, W, C) over the pixels where mask (H, W) is true
-    (normalised convolution: invalid pixels neither contribute nor get diluted)."""
+    (normalised convolution: invalid pixels neither contribute nor get diluted). The C + 1
+    channels are convolved as a batch of single-channel images (much faster on CPU than a
+    grouped convolution)."""
     k = gaussian_kernel(ksize, sigma, img.device, img.dtype)
-    m = mask.to(img.dtype)[None, None]
-    x = torch.cat([img.permute(2, 0, 1)[None] * m, m], 1)  # (1, C+1, H, W)
-    C = x.shape[1]
+    m = mask.to(img.dtype)
+    x = torch.cat([(img * m[..., None]).permute(2, 0, 1), m[None]], 0)[:, None]  # (C+1, 1, H, W)
     pad = ksize // 2
-    x = torch.nn.functional.conv2d(torch.nn.functional.pad(x, (pad, pad, 0, 0), mode="replicate"),
-                                   k.view(1, 1, 1, -1).expand(C, 1, 1, ksize), groups=C)
-    x = torch.nn.functional.conv2d(torch.nn.functional.pad(x, (0, 0, pad, pad), mode="replicate"),
-                                   k.view(1, 1, -1, 1).expand(C, 1, ksize, 1), groups=C)
-    return (x[0, :-1] / x[0, -1:].clamp_min(1e-8)).permute(1, 2, 0)
+    F = torch.nn.functional
+    x = F.conv2d(F.pad(x, (pad, pad, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    x = F.conv2d(F.pad(x, (0, 0, pad, pad), mode="replicate"), k.view(1, 1, -1, 1))
+    x = x[:, 0]
+    return (x[:-1] / x[-1:].clamp_min(1e-8)).permute(1, 2, 0)
+
+
+def bbox(mask: torch.Tensor, margin: int = 0) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1) slice bounds of the true pixels of (H, W) mask grown by `margin`
+    (clipped to the image), or None when the mask is empty."""
+    rows = torch.nonzero(mask.any(1))
+    if len(rows) == 0:
+        return None
+    cols = torch.nonzero(mask.any(0))
+    H, W = mask.shape
+    return (max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, H),
+            max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, W))
+
+
+class Taps:
+    """Bilinear taps of N continuous locations q (N, 2): top-left index i0 (N,), fractional
+    offsets fx, fy (N,), `smooth` (N,) (4 valid taps without a depth / label discontinuity,
+    inside the image) and `nearest` (N,) (the nearest valid tap, -1 if none / outside).
+    The 4 tap indices `idx` (N, 4) (order 00, 10, 01, 11) and weights `w` (N, 4) are derived
+    on demand."""
+    __slots__ = ("q", "i0", "fx", "fy", "smooth", "nearest", "offs")
+    _rows = ("q", "i0", "fx", "fy", "smooth", "nearest")
+
+    def __init__(self, q, i0, fx, fy, smooth, nearest, offs):
+        self.q, self.i0, self.fx, self.fy, self.smooth, self.nearest, self.offs = \
+            q, i0, fx, fy, smooth, nearest, offs
+
+    @property
+    def idx(self) -> torch.Tensor:
+        return self.i0[..., None] + self.offs
+
+    @property
+    def w(self) -> torch.Tensor:
+        fx, fy = self.fx, self.fy
+        gx, gy = 1 - fx, 1 - fy
+        return torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], -1)
+
+    def __getitem__(self, sel) -> "Taps":
+        return Taps(*(getattr(self, k)[sel] for k in self._rows), self.offs)
+
+    @staticmethod
+    def cat(parts: list["Taps"]) -> "Taps":
+        return Taps(*(torch.cat([getattr(p, k) for p in parts]) for k in Taps._rows), parts[0].offs)
+
+    def __iter__(self):  # backwards compatible unpacking: idx, w, tap validity (None), smooth, nearest
+        return iter((self.idx, self.w, None, self.smooth, self.nearest))
 
 
 class Sampler:
     """Bilinear sampling of (H, W, C) images at continuous pixel locations, aware of validity
     and depth discontinuities: a location is `smooth` when its 4 taps are valid and their
-    `key` depths agree within `rel_tol`; elsewhere the nearest valid tap is returned."""
+    `key` depths agree within `rel_tol`; elsewhere the nearest valid tap is returned.
 
-    def __init__(self, valid: torch.Tensor, key: torch.Tensor, rel_tol: float = 0.05):
+    The smoothness of every 2x2 quad is precomputed once (one pass over the image), so a
+    lookup costs one gather instead of four validity / depth gathers and a min / max."""
+
+    def __init__(self, valid: torch.Tensor, key: torch.Tensor, rel_tol: float = 0.05,
+                 label: torch.Tensor | None = None):
+        """label (H, W) int, optional: a quad whose 4 labels differ (e.g. a diffuse wall next to
+        a flush mirror: same depth, different ray-tree nodes) is not smooth either, so colour
+        and node bits are then read from the same (nearest) pixel, never blended across."""
         check(valid, (None, None), "valid")
         check(key, tuple(valid.shape), "key")
         self.H, self.W = valid.shape
         self.valid = valid.reshape(-1)
-        self.key = key.reshape(-1)
         self.rel_tol = rel_tol
+        # quad_ok[y, x]: pixels (x..x+1, y..y+1) all valid, key spread <= rel_tol * min key
+        v = torch.nn.functional.pad(valid[None, None].to(torch.uint8), (0, 1, 0, 1), mode="replicate")[0, 0] > 0
+        k = torch.nn.functional.pad(key[None, None].to(torch.float32), (0, 1, 0, 1), mode="replicate")[0, 0]
+        if self.W == 1:
+            v, k = v[:, :1].expand(-1, 2), k[:, :1].expand(-1, 2)
+        if self.H == 1:
+            v, k = v[:1].expand(2, -1), k[:1].expand(2, -1)
+        a, b, c, d = k[:-1, :-1], k[:-1, 1:], k[1:, :-1], k[1:, 1:]
+        kmin = torch.minimum(torch.minimum(a, b), torch.minimum(c, d))
+        kmax = torch.maximum(torch.maximum(a, b), torch.maximum(c, d))
+        ok = v[:-1, :-1] & v[:-1, 1:] & v[1:, :-1] & v[1:, 1:]
+        if label is not None:
+            check(label, tuple(valid.shape), "label")
+            lb = torch.nn.functional.pad(label[None, None].to(torch.float32), (0, 1, 0, 1),
+                                         mode="replicate")[0, 0]
+            if self.W == 1:
+                lb = lb[:, :1].expand(-1, 2)
+            if self.H == 1:
+                lb = lb[:1].expand(2, -1)
+            a0 = lb[:-1, :-1]
+            ok = ok & (lb[:-1, 1:] == a0) & (lb[1:, :-1] == a0) & (lb[1:, 1:] == a0)
+        self.quad_ok = (ok & (kmax - kmin <= rel_tol * kmin.abs().clamp_min(1e-6)))[:self.H, :self.W].reshape(-1)
+        dev = valid.device
+        dx = 1 if self.W > 1 else 0
+        dy = self.W if self.H > 1 else 0
+        self.offs = torch.tensor([0, dx, dy, dy + dx], device=dev)
 
-    def taps(self, q: torch.Tensor):
-        """Tap indices (N, 4), weights (N, 4), tap validity (N, 4), smooth (N,), nearest (N,)."""
-        x = q[..., 0].clamp(0, self.W - 1)
-        y = q[..., 1].clamp(0, self.H - 1)
-        x0 = x.floor().clamp(max=self.W - 2 if self.W > 1 else 0)
-        y0 = y.floor().clamp(max=self.H - 2 if self.H > 1 else 0)
-        fx, fy = x - x0, y - y0
-        x0, y0 = x0.long(), y0.long()
-        x1 = (x0 + 1).clamp(max=self.W - 1)
-        y1 = (y0 + 1).clamp(max=self.H - 1)
-        idx = torch.stack([y0 * self.W + x0, y0 * self.W + x1, y1 * self.W + x0, y1 * self.W + x1], -1)
-        w = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
-        tv = self.valid[idx]
-        kk = self.key[idx]
-        kmax = torch.where(tv, kk, torch.full_like(kk, -math.inf)).amax(-1)
-        kmin = torch.where(tv, kk, torch.full_like(kk, math.inf)).amin(-1)
-        inside = (q[..., 0] >= -0.5) & (q[..., 0] <= self.W - 0.5) & (q[..., 1] >= -0.5) & \
-                 (q[..., 1] <= self.H - 0.5)
-        smooth = tv.all(-1) & (kmax - kmin <= self.rel_tol * kmin.abs().clamp_min(1e-6)) & inside
-        # nearest valid tap (by weight); none valid -> -1
-        wn = torch.where(tv, w, torch.full_like(w, -1.0))
-        best = wn.argmax(-1, keepdim=True)
-        nearest = idx.gather(-1, best)[..., 0]
-        nearest = torch.where(tv.any(-1) & inside, nearest, torch.full_like(nearest, -1))
-        return idx, w, tv, smooth, nearest
+    def taps(self, q: torch.Tensor) -> Taps:
+        W, H = self.W, self.H
+        qx, qy = q[..., 0], q[..., 1]
+        xc, yc = qx.clamp(0, W - 1), qy.clamp(0, H - 1)
+        x0 = xc.floor().clamp_(max=max(W - 2, 0))
+        y0 = yc.floor().clamp_(max=max(H - 2, 0))
+        fx, fy = xc - x0, yc - y0
+        i0 = (y0 * W + x0).long()
+        inside = (qx >= -0.5) & (qx <= W - 0.5) & (qy >= -0.5) & (qy <= H - 0.5)
+        smooth = self.quad_ok[i0] & inside
+        # nearest tap: the heaviest one; where not smooth, the heaviest *valid* one (or -1)
+        nearest = i0 + (fx >= 0.5).long() * self.offs[1] + (fy >= 0.5).long() * self.offs[2]
+        t = Taps(q, i0, fx, fy, smooth, nearest, self.offs)
+        rough = torch.nonzero(~smooth).squeeze(-1)
+        if len(rough):
+            tr = t[rough]
+            ir, wr = tr.idx, tr.w
+            tv = self.valid[ir]
+            best = torch.where(tv, wr, torch.full_like(wr, -1.0)).argmax(-1, keepdim=True)
+            nr = ir.gather(-1, best)[..., 0]
+            nearest[rough] = torch.where(tv.any(-1) & inside[rough], nr, torch.full_like(nr, -1))
+        return t
 
-    def sample(self, img: torch.Tensor, q: torch.Tensor, taps=None):
-        """(values (N, C), smooth (N,), defined (N,)): bilinear where smooth, else nearest."""
-        idx, w, tv, smooth, nearest = self.taps(q) if taps is None else taps
-        flat = img.reshape(self.H * self.W, -1)
-        bil = (flat[idx] * w[..., None]).sum(-2)
-        near = flat[nearest.clamp_min(0)]
-        return torch.where(smooth[..., None], bil, near), smooth, nearest >= 0
+    def chw(self, img: torch.Tensor) -> torch.Tensor:
+        """(H, W, C) -> the (1, C, H, W) layout `sample` reads fastest (cache it when reused)."""
+        return img.reshape(self.H, self.W, -1).permute(2, 0, 1)[None].contiguous()
+
+    def sample(self, img: torch.Tensor, q: torch.Tensor | None = None, taps: Taps | None = None):
+        """(values (N, C), smooth (N,), defined (N,)): bilinear where smooth (F.grid_sample at
+        the continuous location), else the nearest valid tap. img: (H, W, C), (H*W, C) or the
+        (1, C, H, W) layout of `chw`."""
+        t = self.taps(q) if taps is None else taps
+        x = img if img.ndim == 4 else self.chw(img)
+        C = x.shape[1]
+        q = t.q
+        gx = q[:, 0] * (2.0 / (self.W - 1)) - 1 if self.W > 1 else torch.zeros_like(q[:, 0])
+        gy = q[:, 1] * (2.0 / (self.H - 1)) - 1 if self.H > 1 else torch.zeros_like(q[:, 1])
+        grid = torch.stack([gx, gy], -1).view(1, 1, -1, 2)
+        out = torch.nn.functional.grid_sample(x, grid, mode="bilinear", padding_mode="border",
+                                              align_corners=True)[0, :, 0].T.contiguous()
+        rough = torch.nonzero(~t.smooth).squeeze(-1)
+        if len(rough):
+            flat = x[0].reshape(C, -1)
+            out[rough] = flat[:, t.nearest[rough].clamp_min(0)].T
+        return out, t.smooth, t.nearest >= 0
 
 
 def fresnel_dielectric(cos_i: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:

@@ -54,7 +54,9 @@ class WarpResult:
     diffuse_ok: np.ndarray            # (Hn, Wn) diffuse flow defined (else disocclusion hole)
     region: list[np.ndarray]          # per node (Hn, Wn) the node contributes at this new pixel
     defined: list[np.ndarray]         # per node (Hn, Wn) flow found (specular: Delta <= eps)
-    history: dict = field(default_factory=dict)   # node -> (pixels (M, 2), Delta (steps+1, M))
+    history: dict = field(default_factory=dict)   # node -> (pixels (M, 2), Delta (steps+1, M)
+                                                  # per descent step, final Delta (M,) after
+                                                  # the discrete check)
     timings: dict = field(default_factory=dict)   # seconds per stage (Table 1)
 
 
@@ -89,110 +91,200 @@ def _sync_time(dev, t0):
     return time.perf_counter() - t0
 
 
+def _root_tables(dec: Decoded, rel_tol: float):
+    """Per-tree constants of the root, built once per decoded tree (Decoded.cache): its sampler,
+    the (1, 6, h, w) table of positions + normals in Decoded.box, the node validity bits (P,) and the
+    (1, 3, H, W) radiance."""
+    key = ("root", rel_tol)
+    if key not in dec.cache:
+        n_nodes = dec.tree.n_nodes
+        bits = torch.zeros_like(dec.valid[0], dtype=torch.int32)
+        for i in range(n_nodes):
+            bits |= dec.valid[i].to(torch.int32) << i
+        label = bits * 4 + dec.fresnel.to(torch.int32)   # node set + Fresnel model per pixel
+        sampler = ops.Sampler(dec.valid[0], dec.depth[0], rel_tol, label)
+        y0, y1, x0, x1 = dec.box   # positions + normals are only read at specular pixels
+        table = torch.cat([dec.pos[0][y0:y1, x0:x1], dec.normal[0][y0:y1, x0:x1]], -1)
+        table = table.permute(2, 0, 1)[None].contiguous()
+        dec.cache[key] = (sampler, table, bits.reshape(-1), sampler.chw(dec.rgb[0]))
+    return dec.cache[key]
+
+
+def _sample_box(table: torch.Tensor, box, t: ops.Taps, W: int) -> torch.Tensor:
+    """Sample a (1, C, h, w) table covering box = (y0, y1, x0, x1) of the old image with the
+    full-image taps `t` (every tap involved lies in the box): bilinear where t.smooth, else the
+    nearest valid tap, exactly as ops.Sampler.sample on the full image."""
+    y0, y1, x0, x1 = box
+    hc, wc = y1 - y0, x1 - x0
+    C = table.shape[1]
+    if len(t.q) == 0:
+        return torch.zeros(0, C, device=table.device)
+    qx, qy = t.q[:, 0] - x0, t.q[:, 1] - y0
+    gx = qx * (2.0 / (wc - 1)) - 1 if wc > 1 else torch.zeros_like(qx)
+    gy = qy * (2.0 / (hc - 1)) - 1 if hc > 1 else torch.zeros_like(qy)
+    out = torch.nn.functional.grid_sample(table, torch.stack([gx, gy], -1).view(1, 1, -1, 2),
+                                          mode="bilinear", padding_mode="border",
+                                          align_corners=True)[0, :, 0].T.contiguous()
+    rough = torch.nonzero(~t.smooth).squeeze(-1)
+    if len(rough):
+        nn = t.nearest[rough].clamp_min(0)
+        ny = (nn // W - y0).clamp(0, hc - 1)
+        nx = (nn % W - x0).clamp(0, wc - 1)
+        out[rough] = table[0].reshape(C, -1)[:, ny * wc + nx].T
+    return out
+
+
+def _node_tables(dec: Decoded, i: int, rel_tol: float):
+    """Node i cropped to the specular bounding box (Decoded.box): sampler, W_s, delta, valid,
+    rgb and the crop origin (x0, y0). Outside the box the node is invalid (with a margin), so
+    searching / sampling in the crop is the same as in the full image."""
+    key = ("node", i, rel_tol)
+    if key not in dec.cache:
+        y0, y1, x0, x1 = dec.box
+        c = (slice(y0, y1), slice(x0, x1))
+        valid, delta = dec.valid[i][c].contiguous(), dec.depth[i][c].contiguous()
+        sampler = ops.Sampler(valid, delta, rel_tol)
+        dec.cache[key] = (sampler, dec.pos[i][c].contiguous(), delta, valid,
+                          sampler.chw(dec.rgb[i][c]), (x0, y0))
+    return dec.cache[key]
+
+
 def warp_decoded(dec: Decoded, camera, options: WarpOptions | None = None,
                  record_history: bool = False) -> WarpResult:
     """Warp a decoded ray tree to `camera` (scene.Camera, any size)."""
+    with torch.inference_mode():
+        return _warp_decoded(dec, camera, options, record_history)
+
+
+def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_history: bool) -> WarpResult:
     o = options or WarpOptions()
     dev = dec.device
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
     tree = dec.tree
     Wn, Hn = camera.width, camera.height
+    N = Hn * Wn
     P_new = projection_matrix(camera.K, camera.cam_from_world, dev)
     c_new = torch.as_tensor(camera.center, dtype=torch.float32, device=dev)
     P_old = projection_matrix(tree.K, tree.cam_from_world, dev)
     n_nodes = tree.n_nodes
-    # 1. diffuse flow (§3.4) and the root buffers read through it
-    flow = diffuse_flow(dec.pos[0], dec.valid[0], dec.depth[0], P_new, (Wn, Hn), o.fpi_eps, o.rel_tol)
+    kinds = [int(k) for k in tree.kind]
+    # 1. diffuse flow (§3.4); every root buffer is read bilinearly at the sub-pixel fixed-point
+    #    location (nearest valid tap across depth discontinuities), reusing the flow's taps
+    sampler, table, bits_old, rgb0 = _root_tables(dec, o.rel_tol)
+    flow = diffuse_flow(dec.pos[0], dec.valid[0], dec.depth[0], P_new, (Wn, Hn), o.fpi_eps, o.rel_tol,
+                        sampler=sampler)
     ok = flow.ok.reshape(-1)
-    src = flow.src.reshape(-1, 2)[ok]
-    sampler = ops.Sampler(dec.valid[0], dec.depth[0], o.rel_tol)
-    taps = sampler.taps(src)
-    stack = torch.cat([dec.rgb[0], dec.pos[0], dec.normal[0]], -1)
-    vals, _, _ = sampler.sample(stack, src, taps)
-    near = taps[4].clamp_min(0)
-    # node validity as decoded (e.g. refraction lost to total internal reflection)
-    bits_old = sum((dec.valid[i].reshape(-1).long() << i) for i in range(n_nodes))
-    N = Hn * Wn
-    buf = torch.zeros(N, 9 + 3, device=dev)
-    buf[ok, :9] = vals
-    buf[ok, 9] = dec.ior.reshape(-1)[near]
-    buf[ok, 10] = dec.fresnel.reshape(-1)[near].float()
-    bits_new = torch.zeros(N, dtype=torch.long, device=dev)
-    bits_new[ok] = bits_old[near]
+    pix, taps = flow.pix, flow.taps
+    rgb_k, _, _ = sampler.sample(rgb0, None, taps)
+    near = taps.nearest.clamp_min(0)
+    bits_k = bits_old[near]
+    # only pixels whose first surface is specular need positions, normals, IOR, Fresnel
+    sk = torch.nonzero((bits_k >> 1) != 0).squeeze(-1)
+    pix_s, near_s, bits_s = pix[sk], near[sk], bits_k[sk]
+    pn = _sample_box(table, dec.box, taps[sk], sampler.W)
+    w_s, n_s = pn[:, :3], ops.normalize(pn[:, 3:])
+    ior_s = dec.ior.reshape(-1)[near_s]
+    code_s = dec.fresnel.reshape(-1)[near_s]
+    # Fresnel weights from the new view position, the warped normals and the IOR (§3.5)
+    cos_i = (ops.normalize(w_s - c_new) * n_s).sum(-1).abs()
+    F_s = fresnel_weight(code_s, cos_i, ior_s)
+    none = code_s == FRESNEL_NONE
     tm["warp_diffuse"] = _sync_time(dev, t0)
     # 2. specular flow per first-level node; deeper nodes reuse the parent's flow
-    q_node = [flow.src.reshape(-1, 2)] + [None] * (n_nodes - 1)
-    node_imgs = [None] * n_nodes
-    region = [ok] + [None] * (n_nodes - 1)
-    defined = [ok] + [None] * (n_nodes - 1)
+    Ms = len(sk)
+    q_node = [flow.src.reshape(-1, 2)[pix_s]] + [None] * (n_nodes - 1)   # per specular pixel
+    def_node = [torch.ones(Ms, dtype=torch.bool, device=dev)] + [None] * (n_nodes - 1)
+    val_node = [None] * n_nodes
+    wgt_node = [None] * n_nodes
     history = {}
     for i in range(1, n_nodes):
         t1 = time.perf_counter()
         p = int(tree.parent[i])
-        reg = defined[p] & (((bits_new >> i) & 1) > 0)
-        region[i] = reg
-        q_i = torch.zeros(N, 2, device=dev)
-        def_i = torch.zeros(N, dtype=torch.bool, device=dev)
-        if p == 0 and bool(reg.any()):
-            w = buf[reg, 3:6]
-            n = ops.normalize(buf[reg, 6:9])
-            eta = None if int(tree.kind[i]) == REFLECTIVE else \
-                eta_of(buf[reg, 9], buf[reg, 10].round().long())
-            res = specular_flow(w, n, c_new, eta, q_node[0][reg], dec.pos[i], dec.depth[i],
-                                dec.valid[i], P_old, o.specular)
-            q_i[reg] = res.q
-            def_i[reg] = res.defined
+        s_i, Ws_c, delta_c, valid_c, rgb_c, (x0, y0) = _node_tables(dec, i, o.specular.rel_tol)
+        off = torch.tensor([x0, y0], dtype=torch.float32, device=dev)
+        reg = def_node[p] & (((bits_s >> i) & 1) > 0)
+        ri = torch.nonzero(reg).squeeze(-1)
+        q_i = torch.zeros(Ms, 2, device=dev)
+        def_i = torch.zeros(Ms, dtype=torch.bool, device=dev)
+        val_i = torch.zeros(Ms, 3, device=dev)
+        if p == 0 and len(ri):
+            w, n = w_s[ri], n_s[ri]
+            eta = None if kinds[i] == REFLECTIVE else eta_of(ior_s[ri], code_s[ri])
+            P_c = P_old.clone()   # the old projection in crop pixel coordinates
+            P_c[0] -= x0 * P_old[2]
+            P_c[1] -= y0 * P_old[2]
+            res = specular_flow(w, n, c_new, eta, q_node[0][ri] - off, Ws_c, delta_c, valid_c, P_c,
+                                o.specular, s_i, record_history)
+            qc, dfn = res.q, res.defined
             if record_history:
-                pix = torch.nonzero(reg.view(Hn, Wn))[:, [1, 0]]
-                history[i] = (_np(pix), _np(res.history))
-        elif bool(reg.any()):  # deeper node: parent's flow (§3.4 "Deeper ray flows")
-            q_i[reg] = q_node[p][reg]
-            def_i[reg] = True
-        s_i = ops.Sampler(dec.valid[i], dec.depth[i], o.specular.rel_tol)
-        img = torch.zeros(N, 3, device=dev)
-        if bool(def_i.any()):
-            v, _, d_ok = s_i.sample(dec.rgb[i], q_i[def_i])
-            def_i[def_i.clone()] = d_ok
-            img[def_i] = v[d_ok]
-        q_node[i], node_imgs[i], defined[i] = q_i, img, def_i
-        name = "warp_reflection" if int(tree.kind[i]) == REFLECTIVE else "warp_refraction"
+                pp = pix_s[ri]
+                history[i] = (_np(torch.stack([pp % Wn, pp // Wn], -1)), _np(res.history),
+                              _np(res.energy))
+        elif len(ri):  # deeper node: parent's flow (§3.4 "Deeper ray flows")
+            qc, dfn = q_node[p][ri] - off, def_node[p][ri]
+        if len(ri):
+            dsel = torch.nonzero(dfn).squeeze(-1)
+            v, _, d_ok = s_i.sample(rgb_c, qc[dsel])
+            q_i[ri] = qc + off
+            dd = torch.zeros_like(dfn)
+            dd[dsel] = d_ok
+            def_i[ri] = dd
+            val_i[ri[dsel]] = v
+        q_node[i], def_node[i], val_node[i] = q_i, def_i, val_i
+        rw = torch.where(none, torch.ones_like(F_s), F_s) if kinds[i] == REFLECTIVE else \
+            torch.where(none, torch.zeros_like(F_s), 1 - F_s)
+        wgt_node[i] = torch.where(reg, rw, torch.zeros_like(rw))
+        name = "warp_reflection" if kinds[i] == REFLECTIVE else "warp_refraction"
         tm[name] = tm.get(name, 0.0) + _sync_time(dev, t1)
-    # 3. hole filling per node (§3.5)
+    # 3. hole filling (§3.5): the root's radiance and the per-node compositing weights are
+    #    push-pulled over the diffuse holes together; each node over its own undefined pixels
     t1 = time.perf_counter()
-    root = buf.view(Hn, Wn, -1)
+    root = torch.zeros(N, 3 + n_nodes - 1, device=dev)
+    root[pix, :3] = rgb_k
+    for i in range(1, n_nodes):
+        root[pix_s, 2 + i] = wgt_node[i]
+    root = root.view(Hn, Wn, -1)
     if o.fill:
-        extra = torch.stack([((bits_new >> i) & 1).float() for i in range(n_nodes)], -1)
-        root = push_pull(torch.cat([root, extra.view(Hn, Wn, -1)], -1), ok.view(Hn, Wn))
-        hole = ~ok
-        filled_bits = (root[..., 12:] > 0.5).reshape(N, -1)
-        for i in range(1, n_nodes):
-            region[i] = region[i] | (hole & filled_bits[:, i])
-        root = root[..., :12]
+        root = push_pull(root, flow.ok)
+    root = root.reshape(N, -1)
     tm["fill_diffuse"] = _sync_time(dev, t1)
-    nodes = [root[..., :3]]
+    img = root[:, :3].clone()
+    F_full = torch.ones(N, device=dev)
+    F_full[pix_s] = F_s
+    nodes_np = [_np(root[:, :3].view(Hn, Wn, 3))]
+    region_np = [_np(flow.ok)]
+    defined_np = [_np(flow.ok)]
     for i in range(1, n_nodes):
         t1 = time.perf_counter()
-        img = node_imgs[i].view(Hn, Wn, 3)
-        if o.fill:
-            img = push_pull(img, defined[i].view(Hn, Wn))
-        nodes.append(img)
-        name = "fill_reflection" if int(tree.kind[i]) == REFLECTIVE else "fill_refraction"
+        wi = root[:, 2 + i]
+        use = wi > 0                                   # contributes (incl. filled diffuse holes)
+        d_full = torch.zeros(N, dtype=torch.bool, device=dev)
+        d_full[pix_s] = def_node[i]
+        node = torch.zeros(N, 3, device=dev)
+        node[pix_s] = val_node[i]
+        box = ops.bbox((use | d_full).view(Hn, Wn))
+        if box is not None and o.fill:
+            by0, by1, bx0, bx1 = box
+            nv = node.view(Hn, Wn, 3)
+            nv[by0:by1, bx0:bx1] = push_pull(nv[by0:by1, bx0:bx1].contiguous(),
+                                             d_full.view(Hn, Wn)[by0:by1, bx0:bx1].contiguous())
+        name = "fill_reflection" if kinds[i] == REFLECTIVE else "fill_refraction"
         tm[name] = tm.get(name, 0.0) + _sync_time(dev, t1)
-    # 4. Fresnel compositing (§3.5) with the new view direction and the warped normals
-    t1 = time.perf_counter()
-    pos = root[..., 3:6]
-    nrm = ops.normalize(root[..., 6:9])
-    view = ops.normalize(pos - c_new)
-    cos_i = (view * nrm).sum(-1).abs()
-    code = root[..., 10].round().long()
-    reg_img = [r.view(Hn, Wn) for r in region]
-    img, F = composite(nodes, [int(k) for k in tree.kind], reg_img, code, cos_i, root[..., 9])
-    tm["composite"] = _sync_time(dev, t1)
+        # 4. compositing (§3.5): nodes added with their Fresnel weights, at their pixels only
+        t1 = time.perf_counter()
+        ui = torch.nonzero(use).squeeze(-1)
+        img[ui] += wi[ui, None] * node[ui]
+        nodes_np.append(_np(node.view(Hn, Wn, 3)))
+        region_np.append(_np(use.view(Hn, Wn)))
+        defined_np.append(_np(d_full.view(Hn, Wn)))
+        tm["composite"] = tm.get("composite", 0.0) + _sync_time(dev, t1)
+    tm.setdefault("composite", 0.0)
+    out = _np(img.view(Hn, Wn, 3))
     tm["warp_total"] = _sync_time(dev, t0)
-    return WarpResult(image=_np(img), nodes=[_np(x) for x in nodes], fresnel=_np(F),
-                      diffuse_ok=_np(ok.view(Hn, Wn)), region=[_np(r) for r in reg_img],
-                      defined=[_np(d.view(Hn, Wn)) for d in defined], history=history, timings=tm)
+    return WarpResult(image=out, nodes=nodes_np, fresnel=_np(F_full.view(Hn, Wn)),
+                      diffuse_ok=_np(flow.ok), region=region_np, defined=defined_np,
+                      history=history, timings=tm)
 
 
 def old_composite(dec: Decoded) -> torch.Tensor:
@@ -210,17 +302,18 @@ def naive_warp(dec: Decoded, camera, options: WarpOptions | None = None) -> np.n
     o = options or WarpOptions()
     dev = dec.device
     Wn, Hn = camera.width, camera.height
-    P_new = projection_matrix(camera.K, camera.cam_from_world, dev)
-    flow = diffuse_flow(dec.pos[0], dec.valid[0], dec.depth[0], P_new, (Wn, Hn), o.fpi_eps, o.rel_tol)
-    sampler = ops.Sampler(dec.valid[0], dec.depth[0], o.rel_tol)
-    ok = flow.ok.reshape(-1)
-    img = torch.zeros(Hn * Wn, 3, device=dev)
-    v, _, _ = sampler.sample(old_composite(dec), flow.src.reshape(-1, 2)[ok])
-    img[ok] = v
-    img = img.view(Hn, Wn, 3)
-    if o.fill:
-        img = push_pull(img, flow.ok)
-    return _np(img)
+    with torch.inference_mode():
+        P_new = projection_matrix(camera.K, camera.cam_from_world, dev)
+        sampler = _root_tables(dec, o.rel_tol)[0]
+        flow = diffuse_flow(dec.pos[0], dec.valid[0], dec.depth[0], P_new, (Wn, Hn), o.fpi_eps,
+                            o.rel_tol, sampler=sampler)
+        img = torch.zeros(Hn * Wn, 3, device=dev)
+        v, _, _ = sampler.sample(old_composite(dec), None, flow.taps)
+        img[flow.pix] = v
+        img = img.view(Hn, Wn, 3)
+        if o.fill:
+            img = push_pull(img, flow.ok)
+        return _np(img)
 
 
 def warp(tree: RayTree, camera, options: WarpOptions | None = None, device: str = "cpu",
@@ -231,6 +324,12 @@ def warp(tree: RayTree, camera, options: WarpOptions | None = None, device: str 
     t0 = time.perf_counter()
     tm: dict[str, float] = {}
     dec = decode(tree, device, o.decode, tm)
+    t1 = time.perf_counter()
+    with torch.inference_mode():   # per-tree tables (samplers, channel-first buffers), §3.3
+        _root_tables(dec, o.rel_tol)
+        for i in range(1, tree.n_nodes):
+            _node_tables(dec, i, o.specular.rel_tol)
+    tm["decode_tables"] = _sync_time(dec.device, t1)
     res = warp_decoded(dec, camera, o, record_history)
     res.timings = {**tm, **res.timings, "total": _sync_time(dec.device, t0)}
     return res
