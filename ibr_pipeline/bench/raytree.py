@@ -134,19 +134,32 @@ def _plot_energy(hist, path: Path, n: int = 12, dpi: int = 120) -> None:
     plt.close(fig)
 
 
-def speed(size, repeats, device) -> dict:
+def speed_case(size, tree_file: Path | None = None):
+    """(tree, new camera) of the chrome case at `size`: traced here, or read from `tree_file`
+    (written by --save-speed-tree; lets the speed run happen on a machine without the tracer's
+    open3d, e.g. a GPU box). The new camera is the same 5 cm / 3 degree move."""
+    from ..raytree.scenarios import make_case, moved_camera
+    if tree_file is not None:
+        from ..raytree.encoding import read_tree
+        tree = read_tree(tree_file)
+        return tree, moved_camera(tree.camera())
+    c = make_case("chrome", *size, supersample=1)
+    return c.tree, c.new
+
+
+def speed(size, repeats, device, tree_file: Path | None = None) -> dict:
     import torch
 
-    from ..raytree.scenarios import make_case
     from ..raytree.warp import WarpOptions, warp
 
-    c = make_case("chrome", *size, supersample=1)
+    tree, new = speed_case(size, tree_file)
+    size = tree.size
     runs, cpu = [], []
     o = WarpOptions()
-    warp(c.tree, c.new, o, device=device)  # warm-up (allocations, CUDA context)
+    warp(tree, new, o, device=device)  # warm-up (allocations, CUDA context)
     for _ in range(repeats):
         p0 = time.process_time()   # CPU time of this process (all its threads): less affected
-        runs.append(warp(c.tree, c.new, o, device=device).timings)  # by other users' load
+        runs.append(warp(tree, new, o, device=device).timings)  # by other users' load
         cpu.append(time.process_time() - p0)
     keys = list(runs[0])
     med = {k: round(1e3 * float(np.median([r.get(k, 0.0) for r in runs])), 2) for k in keys}
@@ -154,7 +167,7 @@ def speed(size, repeats, device) -> dict:
         load = open("/proc/loadavg").read().split()[:3]
     except OSError:
         load = None
-    return {"size": list(size), "nodes": c.tree.n_nodes, "device": str(device),
+    return {"size": list(size), "nodes": tree.n_nodes, "device": str(device),
             "threads": torch.get_num_threads(), "repeats": repeats,
             "median_ms": med, "total_runs_ms": [round(r["total"] * 1e3, 1) for r in runs],
             "cpu_ms_per_frame_median": round(1e3 * float(np.median(cpu)), 1),
@@ -181,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--figures", type=Path, help="also write commit-sized raytree_fig7.png / "
                     "raytree_fig8.png here (e.g. docs/figures)")
     ap.add_argument("--skip-accuracy", action="store_true")
+    ap.add_argument("--speed-tree", type=Path, help="time this ray tree file instead of tracing the "
+                    "chrome case (for machines without open3d)")
+    ap.add_argument("--save-speed-tree", type=Path, help="write the traced speed case's tree here")
     args = ap.parse_args(argv)
     import torch
     if args.threads > 0:
@@ -200,8 +216,12 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_accuracy:
         result["accuracy"] = accuracy(cases, args.size, args.supersample, args.move, args.yaw,
                                       args.device, args.out, figures=args.figures)
+    if args.save_speed_tree is not None:
+        from ..raytree.encoding import write_tree
+        write_tree(args.save_speed_tree, speed_case(args.speed_size)[0])
+        print(f"wrote {args.save_speed_tree}")
     if not args.skip_speed:
-        result["speed"] = speed(args.speed_size, args.repeats, args.device)
+        result["speed"] = speed(args.speed_size, args.repeats, args.device, args.speed_tree)
         print(json.dumps(result["speed"], indent=1))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_raytree.json").write_text(json.dumps(result, indent=1))
