@@ -64,8 +64,7 @@ def compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def render_depth(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray:
     """(H, W) z-depth of a world-space mesh seen by `camera` (0 = miss), by open3d ray casting."""
-    from ..render.raycast import build_scene, camera_rays, cast
-    from .normals import pixel_rays
+    from ..render.raycast import build_scene
 
     if len(faces) == 0:
         return np.zeros((camera.height, camera.width))

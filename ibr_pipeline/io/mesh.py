@@ -88,7 +88,7 @@ def write_ply(path: Path | str, mesh: Mesh, comment: str = "ibr_pipeline") -> No
     if mesh.material is not None:
         f["material"] = mesh.material
     rev = {"<f4": "float", "u1": "uchar", "<i4": "int"}
-    header = [f"ply", "format binary_little_endian 1.0", f"comment {comment}",
+    header = ["ply", "format binary_little_endian 1.0", f"comment {comment}",
               f"element vertex {len(v)}"]
     header += [f"property {rev[t]} {n}" for n, t in vfields]
     header += [f"element face {len(f)}", "property list uchar int vertex_indices"]

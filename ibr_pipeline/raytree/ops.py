@@ -5,7 +5,6 @@ images are (H, W, C) tensors, pixel locations are (..., 2) tensors (x, y) = (u, 
 """
 from __future__ import annotations
 
-import math
 
 import torch
 

@@ -174,7 +174,6 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
     sampler, table, bits_old, rgb0 = _root_tables(dec, o.rel_tol)
     flow = diffuse_flow(dec.pos[0], dec.valid[0], dec.depth[0], P_new, (Wn, Hn), o.fpi_eps, o.rel_tol,
                         sampler=sampler)
-    ok = flow.ok.reshape(-1)
     pix, taps = flow.pix, flow.taps
     rgb_k, _, _ = sampler.sample(rgb0, None, taps)
     near = taps.nearest.clamp_min(0)

@@ -10,8 +10,8 @@ import torch
 from ibr_pipeline.errors import InputError
 from ibr_pipeline.metrics import psnr
 from ibr_pipeline.raytree import ops
-from ibr_pipeline.raytree.decode import DecodeOptions, decode, reconstruct_normals
-from ibr_pipeline.raytree.encoding import (RayTree, from_synthetic, read_pair_target, read_tree,
+from ibr_pipeline.raytree.decode import DecodeOptions, decode
+from ibr_pipeline.raytree.encoding import (RayTree, read_pair_target, read_tree,
                                            transmitted_bits, write_tree)
 from ibr_pipeline.raytree.fill import push_pull
 from ibr_pipeline.raytree.scenarios import make_case, moved_camera
@@ -118,7 +118,7 @@ def test_identity_warp_reproduces_image(mirror_case):
     t = mirror_case.tree
     r = warp(t, t.camera())
     from ibr_pipeline.synthetic.raytree import BIT_D  # noqa: F401  (same bit layout)
-    old = mirror_case  # the exact old render = the composite of the tree
+
     dec = decode(t)
     assert r.diffuse_ok.mean() > 0.99
     assert psnr(np.clip(r.image, 0, 1), naive_warp(dec, t.camera())) > 40

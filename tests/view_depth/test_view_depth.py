@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from ibr_pipeline.errors import ConfigError, InputError
+from ibr_pipeline.errors import ConfigError
 from ibr_pipeline.geometry import depth_edges as de
 from ibr_pipeline.geometry import geodesic as geo
 from ibr_pipeline.geometry.grid_mesh import depth_error, grid_mesh, render_depth, simplify_adaptive
