@@ -122,9 +122,19 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="mirror_room", help="tiny | mirror_room | a scene folder")
     ap.add_argument("--out", type=Path, default=Path("out/bench_reflection"))
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--scale", type=float, default=0.5, help="reflection.work_scale")
+    ap.add_argument("--scale", type=float, default=1.0, help="reflection.work_scale")
     ap.add_argument("--multiview", action="store_true", help="reflection.multiview = true")
+    ap.add_argument("--no-user-reflectors", action="store_true",
+                    help="ignore the scene's reflectors.json (detect = auto then detects the planes; "
+                         "the file is still the ground truth of the plane accuracy)")
+    ap.add_argument("--no-decompose", action="store_true",
+                    help="with --no-user-reflectors: stop after the planes (no decomposition)")
+    ap.add_argument("--workspace", type=Path, help="score this existing workspace (reflection "
+                    "already run, e.g. the demo's out/demo) instead of building one from ground "
+                    "truth; --scene is its input folder (default: the sample)")
     args = ap.parse_args(argv)
+    if args.workspace is not None:
+        return _score_workspace(args)
     if args.scene == "mirror_room":
         scene = REPO / "sample_data" / "mirror_room"
     elif args.scene == "tiny":
@@ -140,7 +150,26 @@ def main(argv=None) -> int:
     ws = make_gt_workspace(scene, ws_dir)
     result: dict = {"scene": str(scene), "work_scale": args.scale}
     t0 = time.perf_counter()
-    run_stage(ws, {"work_scale": args.scale, "multiview": args.multiview})
+    over = {"work_scale": args.scale, "multiview": args.multiview}
+    if args.no_user_reflectors:
+        over["use_user_reflectors"] = False
+    if args.no_decompose:
+        from ..config import build_config
+        from ..runner import StageContext
+        from ..stages.reflection import Loader, ReflectionConfig, get_planes
+        ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", over),
+                           ws.scene())
+        c0 = time.process_time()
+        get_planes(ctx, Loader(ctx))
+        result["planes_seconds"] = time.perf_counter() - t0
+        result["planes_cpu_seconds"] = time.process_time() - c0
+        result["planes"] = plane_accuracy(ws, scene)
+        result["candidates"] = json.loads(ws.path("reflection/planes.json").read_text())["candidates"]
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
+        print(json.dumps(result, indent=1))
+        return 0
+    run_stage(ws, over)
     result["stage_seconds"] = time.perf_counter() - t0
     recs = [json.loads(p.read_text()) for p in ws.state_dir("reflection").glob("*.json")]
     refl_views = [r["view"] for r in recs if any(k.endswith("I0.png") for k in r["outputs"])]
@@ -152,6 +181,30 @@ def main(argv=None) -> int:
         [r["seconds"] for r in recs if r["view"] not in refl_views])) if len(refl_views) < len(recs) else None
     result["layers"] = layer_accuracy(ws, scene)
     result["planes"] = plane_accuracy(ws, scene)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+def _timings(ws) -> dict:
+    recs = [json.loads(p.read_text()) for p in ws.state_dir("reflection").glob("*.json")]
+    refl = [r for r in recs if any(k.endswith("I0.png") for k in r.get("outputs", {}))]
+    plain = [r for r in recs if r not in refl]
+    med = (lambda rs: float(np.median([r["seconds"] for r in rs])) if rs else None)  # noqa: E731
+    return {"views": len(recs), "reflective_views": len(refl),
+            "seconds_per_reflective_view": med(refl), "seconds_per_plain_view": med(plain)}
+
+
+def _score_workspace(args) -> int:
+    """Layer (and, when planes were detected, plane) accuracy of a real workspace's outputs."""
+    from ..workspace import Workspace
+    ws = Workspace(args.workspace)
+    scene = REPO / "sample_data" / "mirror_room" if args.scene == "mirror_room" else Path(args.scene)
+    result = {"workspace": str(args.workspace), "scene": str(scene), **_timings(ws),
+              "layers": layer_accuracy(ws, scene)}
+    if ws.path("reflection/planes.json").is_file():
+        result["planes"] = plane_accuracy(ws, scene)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))

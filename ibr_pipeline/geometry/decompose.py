@@ -11,8 +11,11 @@ mirror-world points X1 (the planar-reflection geometry: M1). w_k'(u, M) = projec
 The data term Eq. 8 is evaluated at the neighbour's pixels q: the surface layer of view k seen at
 q comes from a_q = project_k(X0_k'(q)) and the reflection layer from b_q = project_k(X1_k'(q)) —
 the inverse flows w^-1 obtained by "rendering" M0 / M1 at k' (exact for planar reflectors, since
-M1 is the mirrored scene). Sampling is bilinear (torch grid_sample), so E_d is differentiable in
-the images and in the rigid transform (R, T) of M1.
+M1 is the mirrored scene). Sampling is bilinear; as a sparse interpolation matrix it makes E_d
+linear in the images, so for fixed geometry Eq. 7 is a sparse linear least-squares problem in R
+(image step: normal equations, block Jacobi-PCG, active set for the box). The rigid transform
+(R, T) of M1 is refined by Levenberg-Marquardt on the data residuals (geometry step). numpy /
+scipy only (no torch: its import alone cost seconds per worker).
 """
 from __future__ import annotations
 
@@ -69,6 +72,8 @@ class DecomposeOptions:
     optimise_pose: bool = True
     saturation: float = 0.98  # highlights: pixels with a channel >= this are left out of E_d
     visibility_tol: float = 0.05  # relative depth tolerance of the occlusion tests
+    cg_iterations: int = 150  # preconditioned CG iterations of one image-step solve
+    lambda_scene: float = 0.5  # weight of the reflected-scene colour prior (reflection_prior.py)
 
 
 def project(camera: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -199,145 +204,300 @@ def build_data_terms(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions)
     return out
 
 
-def _grid(pos, W, H):
-    import torch
-    g = torch.empty_like(pos)
-    g[:, 0] = 2 * pos[:, 0] / (W - 1) - 1
-    g[:, 1] = 2 * pos[:, 1] / (H - 1) - 1
-    return g.view(1, 1, -1, 2)
+def bilinear_matrix(pos: np.ndarray, W: int, H: int):
+    """Sparse (N, H*W) matrix of bilinear interpolation weights at (N, 2) pixel positions,
+    positions clamped to the image (= torch grid_sample, align_corners=True, border padding)."""
+    import scipy.sparse as sp
+    p = np.asarray(pos, np.float64)
+    x = np.clip(np.nan_to_num(p[:, 0], nan=0.0), 0, W - 1)
+    y = np.clip(np.nan_to_num(p[:, 1], nan=0.0), 0, H - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
+    ax, ay = x - x0, y - y0
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    N = len(p)
+    rows = np.repeat(np.arange(N), 4)
+    cols = np.stack([y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1], 1).reshape(-1)
+    vals = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], 1).reshape(-1)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(N, H * W))
 
 
-def _gs(img, pos, W, H):
-    """Bilinear samples (N, 3) of a (1, 3, H, W) tensor at (N, 2) pixel positions."""
-    import torch.nn.functional as F
-    return F.grid_sample(img, _grid(pos, W, H), mode="bilinear", padding_mode="border",
-                         align_corners=True)[0, :, 0].T
+def _bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """(N, C) bilinear samples of an (H, W, C) image at (N, 2) positions (clamped)."""
+    H, W = img.shape[:2]
+    x = np.clip(pos[:, 0], 0, W - 1)
+    y = np.clip(pos[:, 1], 0, H - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
+    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    return ((1 - ay) * ((1 - ax) * img[y0, x0] + ax * img[y0, x1])
+            + ay * ((1 - ax) * img[y1, x0] + ax * img[y1, x1]))
 
 
-def _rodrigues(w):
-    import torch
-    th = torch.sqrt((w * w).sum() + 1e-12)
-    k = w / th
-    Kx = torch.zeros(3, 3, dtype=w.dtype)
-    Kx[0, 1], Kx[0, 2], Kx[1, 0] = -k[2], k[1], k[2]
-    Kx[1, 2], Kx[2, 0], Kx[2, 1] = -k[0], -k[1], k[0]
-    return torch.eye(3, dtype=w.dtype) + torch.sin(th) * Kx + (1 - torch.cos(th)) * Kx @ Kx
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3)
+    k = np.asarray(w, np.float64) / th
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * Kx + (1 - np.cos(th)) * Kx @ Kx
+
+
+def _block_pcg(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray, iterations: int = 150,
+               tol: float = 1e-6) -> np.ndarray:
+    """Jacobi-preconditioned CG for H x = g with several right-hand sides (columns of g), the
+    variables where `free` is False held at their value in x0 (the active set of the box)."""
+    F = free.astype(np.float64)
+    xb = x0 * (1 - F)
+    rhs = F * (g - H @ xb)
+    dinv = 1.0 / np.maximum(H.diagonal(), 1e-12)[:, None]
+    x = x0 * F
+
+    def mv(v):
+        return F * (H @ (F * v))
+
+    r = rhs - mv(x)
+    z = dinv * r * F
+    p = z.copy()
+    rz = (r * z).sum(0)
+    n0 = np.sqrt((rhs ** 2).sum(0)) + 1e-30
+    for _ in range(iterations):
+        if np.all(np.sqrt((r ** 2).sum(0)) < tol * n0):
+            break
+        q = mv(p)
+        pq = (p * q).sum(0)
+        alpha = np.where(pq > 0, rz / np.where(pq > 0, pq, 1), 0.0)
+        x = x + alpha * p
+        r = r - alpha * q
+        z = dinv * r * F
+        rz_new = (r * z).sum(0)
+        beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)
+        p = z + beta * p
+        rz = rz_new
+    return x + xb
 
 
 class Problem:
     """Eq. 7 for one view: E_d + lambda_s E_s + lambda_p E_p + lambda_mv E_mv over R = beta I1
-    (I0 = I - R) and the rigid transform (R, T) of M1."""
+    (I0 = I - R) inside the mask and the rigid transform (R, T) of M1.
+
+    For fixed geometry every term is quadratic in R (bilinear sampling is linear in the image;
+    the edge-aware weights of Eq. 9 are held fixed within one image step), so the image step is
+    a sparse linear least-squares problem: its normal equations H x = g (one matrix, three
+    right-hand sides = the colour channels) are solved directly (sparse LU), and the box of
+    Eq. 7 is enforced by an active-set loop. The geometry step (6 parameters) is Gauss-Newton /
+    Levenberg-Marquardt on the data residuals (scipy least_squares)."""
 
     def __init__(self, ref: ViewGeom, terms: list[DataTerm], opts: DecomposeOptions):
-        import torch
-
-        self.torch = torch
-        torch.set_num_threads(1)  # one worker per view: the runner parallelises over views
+        import scipy.sparse as sp
         self.ref, self.terms, self.opts = ref, terms, opts
         H, W = ref.image.shape[:2]
         self.H, self.W = H, W
-        self.I = torch.tensor(ref.image.transpose(2, 0, 1)[None], dtype=torch.float64)
-        self.mask = torch.tensor(ref.mask[None, None], dtype=torch.float64)
-        self.tq = [(torch.tensor(t.target), torch.tensor(t.a), torch.tensor(t.b),
-                    torch.tensor(t.X1)) for t in terms]
-        cam = ref.camera
-        self.K = torch.tensor(cam.K)
-        self.Rc = torch.tensor(cam.R)
-        self.tc = torch.tensor(cam.t)
-        x1 = ref.X1[ref.mask & (ref.D1 > 0)]
-        self.centre = torch.tensor(x1.mean(0) if len(x1) else np.zeros(3))
-        self.pose = torch.zeros(6, dtype=torch.float64)  # axis-angle, translation of M1
-        self.target0 = None  # aggregated I~0 (Eq. 12), tensor or None
-        self.target1 = None  # aggregated I~1 (Eq. 13, as R~)
+        self.I = np.asarray(ref.image, np.float64)
+        m = ref.mask
+        self.m = m
+        self.P = int(m.sum())
+        self.flat = np.flatnonzero(m.reshape(-1))
+        self.Im = self.I.reshape(-1, 3)[self.flat]  # (P, 3)
+        idx = -np.ones(H * W, np.int64)
+        idx[self.flat] = np.arange(self.P)
+        self.idx = idx.reshape(H, W)
+        # finite differences between 4-neighbours that are both in the mask (Eq. 9)
+        ea = [(self.idx[:, :-1], self.idx[:, 1:]), (self.idx[:-1, :], self.idx[1:, :])]
+        i0 = np.concatenate([a[(a >= 0) & (b >= 0)] for a, b in ea])
+        i1 = np.concatenate([b[(a >= 0) & (b >= 0)] for a, b in ea])
+        E = len(i0)
+        self.D = sp.csr_matrix((np.r_[-np.ones(E), np.ones(E)], (np.r_[np.arange(E), np.arange(E)],
+                                                                    np.r_[i0, i1])), shape=(E, self.P))
+        # E_d: residual = A x - r, A = S_b - S_a restricted to mask pixels, r = tgt - S_a I
+        As, rs, self.Sa_I, self.tgts = [], [], [], []
+        for t in terms:
+            Sa = bilinear_matrix(t.a, W, H)
+            Sb = bilinear_matrix(t.b, W, H)
+            SaI = Sa @ self.I.reshape(-1, 3)
+            As.append((Sb[:, self.flat] - Sa[:, self.flat]).tocsr())
+            rs.append(t.target - SaI)
+            self.Sa_I.append(SaI)
+            self.tgts.append(t.target)
+        self.A = sp.vstack(As).tocsr() if As else sp.csr_matrix((0, self.P))
+        self.r = np.concatenate(rs) if rs else np.zeros((0, 3))
+        self.AtA = (self.A.T @ self.A).tocsr()
+        x1 = ref.X1[m & (ref.D1 > 0)]
+        self.centre = x1.mean(0) if len(x1) else np.zeros(3)
+        self.pose = np.zeros(6)
+        self.target0 = None  # aggregated I~0 (Eq. 12), (H, W, 3) or None
+        self.target1 = None  # aggregated R~ (Eq. 13)
         self.lambda_mv = 0.0
+        self.r_max = 1.0
+        self.prior = None  # (P, 3) beta * reflected-scene colour, NaN = unknown
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _x(self, R: np.ndarray) -> np.ndarray:
+        return np.asarray(R, np.float64).reshape(-1, 3)[self.flat]
+
+    def _R(self, x: np.ndarray) -> np.ndarray:
+        out = np.zeros((self.H * self.W, 3))
+        out[self.flat] = x
+        return out.reshape(self.H, self.W, 3)
+
+    def _weights(self, x):
+        """Eq. 9 edge-aware weights e^{-|grad L|} of I0 and R (summed over channels)."""
+        w0 = np.exp(-np.abs(self.D @ (self.Im - x)).sum(1))
+        w1 = np.exp(-np.abs(self.D @ x).sum(1))
+        return w0, w1
 
     def b_positions(self, pose, i):
-        """b_q with M1 moved by (R, T): the point of M1_k rendered at q is T^-1 applied to q's
-        mirror-world point (linearisation: M1_k is locally the mirrored scene)."""
-        torch = self.torch
-        X = self.tq[i][3]
-        Rm = _rodrigues(pose[:3]) if float(pose[:3].abs().sum()) > 0 or pose.requires_grad else \
-            torch.eye(3, dtype=torch.float64)
-        Xm = (X - self.centre - pose[3:]) @ Rm + self.centre  # R^T (X - c - T) + c
-        cam = Xm @ self.Rc.T + self.tc
-        uv = cam @ self.K.T
+        """b_q with M1 moved by (R, T): R^T (X - c - T) + c projected into the reference."""
+        X = self.terms[i].X1
+        Rm = _rodrigues(pose[:3])
+        Xm = (X - self.centre - pose[3:]) @ Rm + self.centre
+        cam = self.ref.camera
+        c = Xm @ cam.R.T + cam.t
+        uv = c @ cam.K.T
         return uv[:, :2] / uv[:, 2:3]
 
-    def energy(self, Rimg, pose, parts: bool = False):
-        torch = self.torch
-        I0 = self.I - Rimg
-        Ed = torch.zeros((), dtype=torch.float64)
-        for i, (tgt, a, _b, _x) in enumerate(self.tq):
+    def data_residual(self, R, pose):
+        """E_d residuals (N, 3) for the images R and the pose of M1."""
+        if not self.terms:
+            return np.zeros((0, 3))
+        if not np.any(pose):
+            x = self._x(R)
+            return self.A @ x - self.r
+        out = []
+        x = self._x(R)
+        for i, t in enumerate(self.terms):
             b = self.b_positions(pose, i)
-            pred = _gs(I0, a, self.W, self.H) + _gs(Rimg, b, self.W, self.H)  # Eq. 8
-            Ed = Ed + ((pred - tgt) ** 2).sum()
-        Es = torch.zeros((), dtype=torch.float64)
-        for L in (I0, Rimg):  # Eq. 9, image part: e^{-|grad|} |grad|^2 (weights held fixed)
-            for dim in (2, 3):
-                g = torch.diff(L, dim=dim)
-                m = torch.minimum(torch.narrow(self.mask, dim, 0, g.shape[dim]),
-                                  torch.narrow(self.mask, dim, 1, g.shape[dim]))
-                w = torch.exp(-g.detach().abs().sum(1, keepdim=True))
-                Es = Es + (m * w * g ** 2).sum()
-        Ep = ((I0 * self.mask) ** 2).sum() + ((Rimg * self.mask) ** 2).sum()  # Eq. 10
-        Emv = torch.zeros((), dtype=torch.float64)
-        if self.lambda_mv > 0 and self.target0 is not None:  # Eq. 11
-            Emv = (((I0 - self.target0) * self.mask) ** 2).sum() + \
-                (((Rimg - self.target1) * self.mask) ** 2).sum()
+            Sa_R = bilinear_matrix(t.a, self.W, self.H)[:, self.flat] @ x
+            out.append(self.Sa_I[i] - Sa_R + _bilinear(R, b) - t.target)
+        return np.concatenate(out)
+
+    def energy(self, R, pose=None, parts: bool = False):
+        pose = self.pose if pose is None else pose
+        x = self._x(R)
+        Ed = float((self.data_residual(R, pose) ** 2).sum())
+        w0, w1 = self._weights(x)
+        Es = float((w0[:, None] * (self.D @ (self.Im - x)) ** 2).sum()
+                   + (w1[:, None] * (self.D @ x) ** 2).sum())
+        Ep = float(((self.Im - x) ** 2).sum() + (x ** 2).sum())
+        Emv = 0.0
+        if self.lambda_mv > 0 and self.target0 is not None:
+            t0, t1 = self._x(self.target0), self._x(self.target1)
+            Emv = float(((self.Im - x - t0) ** 2).sum() + ((x - t1) ** 2).sum())
         o = self.opts
-        E = Ed + o.lambda_s * Es + o.lambda_p * Ep + self.lambda_mv * Emv
+        Ec = 0.0
+        if self.prior is not None:
+            k = np.all(np.isfinite(self.prior), axis=1)[:, None]
+            Ec = float(((x - np.where(k, self.prior, 0.0)) ** 2 * k).sum())
+        E = Ed + o.lambda_s * Es + o.lambda_p * Ep + self.lambda_mv * Emv + o.lambda_scene * Ec
         if parts:
-            return E, {"E_d": float(Ed), "E_s": float(Es), "E_p": float(Ep), "E_mv": float(Emv)}
+            return E, {"E_d": Ed, "E_s": Es, "E_p": Ep, "E_mv": Emv, "E_scene": Ec}
         return E
 
+    # -- image step ------------------------------------------------------------------------------
     def image_step(self, R0: np.ndarray, history: list) -> np.ndarray:
-        """Minimise Eq. 7 over R with the geometry fixed: L-BFGS-B with the box of Eq. 7."""
-        from scipy.optimize import minimize
-        torch = self.torch
-        m = self.ref.mask
-        idx = np.nonzero(np.broadcast_to(m[None], (3,) + m.shape).reshape(-1))[0]
-        I = self.ref.image.transpose(2, 0, 1).reshape(-1)
-        # 0 <= R (I1 >= 0); R <= I (I0 >= 0); R <= beta (I1 <= 1): beta folded by the caller
-        hi = np.minimum(I[idx], self.r_max)
-        full = torch.tensor(np.asarray(R0, np.float64).transpose(2, 0, 1).reshape(-1))
-
-        def fun(x):
-            v = full.clone()
-            v[idx] = torch.tensor(x)
-            v.requires_grad_(True)
-            E = self.energy(v.view(1, 3, self.H, self.W), self.pose)
-            E.backward()
-            return float(E.detach()), v.grad[idx].numpy().copy()
-
-        x0 = np.clip(full.numpy()[idx], 0, hi)
-        res = minimize(fun, x0, jac=True, method="L-BFGS-B", bounds=list(zip(np.zeros_like(hi), hi)),
-                       options={"maxiter": self.opts.image_iterations})
-        out = full.numpy().copy()
-        out[idx] = res.x
-        R = out.reshape(3, self.H, self.W).transpose(1, 2, 0)
-        history.append({"step": "image", "energy": float(res.fun), "iterations": int(res.nit)})
+        """Minimise Eq. 7 over R with the geometry fixed: sparse normal equations, box by an
+        active-set loop (variables at a violated bound are fixed there and the rest re-solved)."""
+        import scipy.sparse as sp
+        o = self.opts
+        x0 = self._x(R0)
+        if np.any(self.pose):  # linearise the reflection sampling at the current pose
+            As, rs = [], []
+            for i, t in enumerate(self.terms):
+                Sa = bilinear_matrix(t.a, self.W, self.H)[:, self.flat]
+                Sb = bilinear_matrix(self.b_positions(self.pose, i), self.W, self.H)[:, self.flat]
+                As.append(Sb - Sa)
+                rs.append(t.target - self.Sa_I[i])
+            A = sp.vstack(As).tocsr()
+            AtA, r = (A.T @ A).tocsr(), np.concatenate(rs)
+        else:
+            A, AtA, r = self.A, self.AtA, self.r
+        w0, w1 = self._weights(x0)
+        D = self.D
+        lam_mv = self.lambda_mv if self.target0 is not None else 0.0
+        Hm = (AtA + o.lambda_s * (D.T @ sp.diags(w0 + w1) @ D)
+              + (2 * o.lambda_p + 2 * lam_mv) * sp.identity(self.P)).tocsc()
+        g = A.T @ r + o.lambda_s * (D.T @ (w0[:, None] * (D @ self.Im))) + o.lambda_p * self.Im
+        if lam_mv > 0:
+            g = g + lam_mv * (self.Im - self._x(self.target0) + self._x(self.target1))
+        hi = np.minimum(self.Im, self.r_max)
+        if self.prior is not None and o.lambda_scene > 0:
+            # the prior is per channel but its mask is (almost) channel-independent: use the
+            # pixels known in all channels so that one matrix serves the three channels
+            k = np.all(np.isfinite(self.prior), axis=1)
+            Hm = (Hm + o.lambda_scene * sp.diags(k.astype(np.float64))).tocsc()
+            g = g + o.lambda_scene * np.where(k[:, None], np.nan_to_num(self.prior), 0.0)
+        Hr = Hm.tocsr()
+        x = np.clip(x0, 0, hi)
+        free = np.ones_like(x, bool)
+        for _ in range(3):  # active set: variables at a violated bound are fixed there
+            x = _block_pcg(Hr, g, x, free, iterations=o.cg_iterations)
+            viol = ((x < 0) | (x > hi)) & free
+            if not viol.any():
+                break
+            free &= ~viol
+            x = np.clip(x, 0, hi)
+        x = np.clip(x, 0, hi)
+        R = self._R(x)
+        history.append({"step": "image", "energy": float(self.energy(R)), "unknowns": int(x.size)})
         return R
 
+    # -- geometry step ---------------------------------------------------------------------------
     def pose_step(self, R: np.ndarray, history: list) -> None:
-        """Minimise Eq. 7 over the rigid transform (R, T) of M1 with the images fixed."""
-        torch = self.torch
-        Rimg = torch.tensor(R.transpose(2, 0, 1)[None])
-        pose = self.pose.clone().requires_grad_(True)
-        optim = torch.optim.LBFGS([pose], lr=0.5, max_iter=self.opts.pose_iterations,
-                                  line_search_fn="strong_wolfe")
+        """Minimise E_d over the rigid transform (R, T) of M1 with the images fixed (the other
+        terms do not depend on it): Levenberg-Marquardt, accepted only if the energy drops."""
+        E0 = self.energy(R, self.pose)
+        if not self.terms or self.opts.pose_iterations <= 0:
+            history.append({"step": "pose", "energy": E0, "pose": self.pose.tolist()})
+            return
+        import cv2
+        x = self._x(R)
+        base = np.concatenate([self.Sa_I[i] - bilinear_matrix(t.a, self.W, self.H)[:, self.flat] @ x
+                               - t.target for i, t in enumerate(self.terms)]).reshape(-1)
+        R32 = R.astype(np.float32)
+        gx = np.stack([cv2.Sobel(R32[..., c], cv2.CV_32F, 1, 0, ksize=3) / 8 for c in range(3)], -1)
+        gy = np.stack([cv2.Sobel(R32[..., c], cv2.CV_32F, 0, 1, ksize=3) / 8 for c in range(3)], -1)
 
-        def closure():
-            optim.zero_grad()
-            E = self.energy(Rimg, pose)
-            E.backward()
-            return E
+        def bpos(p):
+            return np.concatenate([self.b_positions(p, i) for i in range(len(self.terms))])
 
-        E0 = float(self.energy(Rimg, self.pose))
-        optim.step(closure)
-        E1 = float(self.energy(Rimg, pose.detach()))
+        def res(b):
+            return base + _bilinear(R, b).reshape(-1)
+
+        p = self.pose.copy()
+        b = bpos(p)
+        r = res(b)
+        e = float(r @ r)
+        lam, h = 1e-3, 1e-4
+        evals = 1
+        for _ in range(self.opts.pose_iterations):  # Gauss-Newton / LM, analytic image gradient
+            G = np.stack([_bilinear(gx, b), _bilinear(gy, b)], -1)  # (N, 3, 2)
+            J = np.empty((len(r), 6))
+            for k in range(6):
+                dp = np.zeros(6)
+                dp[k] = h
+                db = (bpos(p + dp) - b) / h  # (N, 2)
+                J[:, k] = np.einsum("ncd,nd->nc", G, db).reshape(-1)
+            JtJ, Jtr = J.T @ J, J.T @ r
+            for _try in range(4):
+                step = -np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ) + 1e-12), Jtr)
+                pn = p + step
+                bn = bpos(pn)
+                rn = res(bn)
+                evals += 1
+                en = float(rn @ rn)
+                if en < e:
+                    p, b, r, e, lam = pn, bn, rn, en, lam * 0.3
+                    break
+                lam *= 10
+            else:
+                break
+        sol_x, nfev = p, evals
+        E1 = self.energy(R, sol_x)
         if E1 < E0:
-            self.pose = pose.detach()
-        history.append({"step": "pose", "energy": min(E0, E1), "pose": self.pose.tolist()})
+            self.pose = np.asarray(sol_x, np.float64)
+        history.append({"step": "pose", "energy": min(E0, E1), "pose": self.pose.tolist(),
+                        "evaluations": int(nfev)})
 
 
 def aggregate(ref: ViewGeom, R: np.ndarray, nbs: list[ViewGeom], nb_R: dict[str, np.ndarray],
@@ -377,13 +537,15 @@ def crop_view(g: ViewGeom, margin: int = 2) -> tuple[ViewGeom, tuple[int, int, i
 
 def decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, beta: float = 1.0,
               mirror: bool = False, aggregate_from: dict[str, np.ndarray] | None = None,
-              R_init: np.ndarray | None = None, stages: tuple[str, ...] = ("init", "opt")) -> dict:
+              R_init: np.ndarray | None = None, stages: tuple[str, ...] = ("init", "opt"),
+              R_prior: np.ndarray | None = None) -> dict:
     """`_decompose` on the bounding box of the reflector mask (same result, less work)."""
     if not ref.mask.any():
         return {"R": np.zeros_like(ref.image), "history": [], "pose": [0.0] * 6, "neighbours": []}
     crop, (y0, y1, x0, x1) = crop_view(ref)
     res = _decompose(crop, nbs, opts, beta=beta, mirror=mirror, aggregate_from=aggregate_from,
-                     R_init=None if R_init is None else R_init[y0:y1, x0:x1], stages=stages)
+                     R_init=None if R_init is None else R_init[y0:y1, x0:x1], stages=stages,
+                     R_prior=None if R_prior is None else R_prior[y0:y1, x0:x1])
     R = np.zeros_like(ref.image)
     R[y0:y1, x0:x1] = res["R"]
     res["R"] = R
@@ -392,7 +554,8 @@ def decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, bet
 
 def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, beta: float = 1.0,
                mirror: bool = False, aggregate_from: dict[str, np.ndarray] | None = None,
-               R_init: np.ndarray | None = None, stages: tuple[str, ...] = ("init", "opt")) -> dict:
+               R_init: np.ndarray | None = None, stages: tuple[str, ...] = ("init", "opt"),
+               R_prior: np.ndarray | None = None) -> dict:
     """One per-view decomposition pass. Returns {"R": (H, W, 3) reflection component beta*I1,
     "history": energy log, "pose": (6,) (R, T) of M1, "neighbours": names used}.
 
@@ -407,6 +570,11 @@ def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, be
     if R_init is None:
         R, info = init_layers(ref, nbs, opts)
         hist.append({"step": "init", "warp_energy": info["warp_energy"]})
+        if R_prior is not None:  # reflected-scene colour where observed (reflection_prior.py)
+            k = np.all(np.isfinite(R_prior), axis=2) & ref.mask
+            Rp = np.clip(np.nan_to_num(R_prior), 0, np.minimum(ref.image, beta))
+            R = np.where(k[..., None], Rp, R)
+            hist[-1]["prior_pixels"] = int(k.sum())
     else:
         R = R_init
     if "opt" not in stages:
@@ -414,20 +582,19 @@ def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, be
     terms = build_data_terms(ref, nbs, opts)
     prob = Problem(ref, terms, opts)
     prob.r_max = beta
+    if R_prior is not None:
+        prob.prior = np.asarray(R_prior, np.float64).reshape(-1, 3)[prob.flat]
     if aggregate_from is not None:
-        import torch
         T0, T1 = aggregate(ref, R, nbs, aggregate_from, opts)
-        prob.target0 = torch.tensor(T0.transpose(2, 0, 1)[None])
-        prob.target1 = torch.tensor(T1.transpose(2, 0, 1)[None])
+        prob.target0, prob.target1 = T0, T1
         prob.lambda_mv = opts.lambda_mv
-    E, parts = prob.energy(__import__("torch").tensor(R.transpose(2, 0, 1)[None]), prob.pose, parts=True)
+    E, parts = prob.energy(R, parts=True)
     hist.append({"step": "start", "energy": float(E), **parts})
     for _ in range(opts.outer_iterations):  # alternate image / geometry variables (§4.3.2)
         R = prob.image_step(R, hist)
         if opts.optimise_pose and terms:
             prob.pose_step(R, hist)
-    import torch
-    E, parts = prob.energy(torch.tensor(R.transpose(2, 0, 1)[None]), prob.pose, parts=True)
+    E, parts = prob.energy(R, parts=True)
     hist.append({"step": "end", "energy": float(E), **parts})
     return {"R": R, "history": hist, "pose": prob.pose.tolist(),
             "neighbours": [t.name for t in terms]}

@@ -99,7 +99,13 @@ def ransac_planes(points: np.ndarray, *, distance: float = 0.008, min_points: in
             if hull.volume < min_cluster_area:  # 2D hull "volume" is its area
                 continue
             poly = origin + np.outer(uv[hull.vertices, 0], u) + np.outer(uv[hull.vertices, 1], v)
-            out.append({"plane": fit_plane(piece), "polygon": poly, "area": float(hull.volume),
+            pl = fit_plane(piece)
+            for _ in range(3):  # robust refit on the piece: a thick band can tilt the plane
+                near = piece[np.abs(piece @ pl[:3] + pl[3]) < 0.5 * distance]
+                if len(near) < 3:
+                    break
+                pl = fit_plane(near)
+            out.append({"plane": pl, "polygon": poly, "area": float(hull.volume),
                         "count": int(len(piece))})
     return out
 
@@ -159,10 +165,13 @@ def reflector_mask(camera: Camera, plane, polygon: np.ndarray | None, depth: np.
     return ok
 
 
-def mirror_points(camera: Camera, plane, mask: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
+def mirror_points(camera: Camera, plane, mask: np.ndarray, scene,
+                  min_gap: float = 0.03, bounds=None) -> tuple[np.ndarray, np.ndarray]:
     """The planar-reflection geometry of a view (§4.3.1 initialisation of M1): for each pixel in
     `mask`, the reflected ray from the plane is cast into G (open3d RaycastingScene `scene`); the
-    mirror-world point lies on the camera ray at the total path length. Returns (H, W, 3) world
+    mirror-world point lies on the camera ray at the total path length. Hits closer than
+    `min_gap` to the plane (noise / thickness of a fused G at the reflector) are skipped; rays
+    that leave G through a hole end on the box `bounds` = (lo, hi) when given. Returns (H, W, 3) world
     points (NaN where there is none) and their (H, W) z-depth in this camera (0 where none)."""
     from ..render.raycast import cast
 
@@ -183,9 +192,32 @@ def mirror_points(camera: Camera, plane, mask: np.ndarray, scene) -> tuple[np.nd
     rng0 = np.linalg.norm(r, axis=1)
     r /= rng0[:, None]
     r_ref = r - 2.0 * (r @ p[:3])[:, None] * p[:3]
-    hit = cast(scene, P + 1e-4 * r_ref, r_ref)["t_hit"]
+    # the reflected ray must leave the reflector: a fused (TSDF) G is noisy / has thickness around
+    # the plane, so hits within `min_gap` of the plane are skipped (recast from behind them);
+    # without this M1 collapses onto the plane (= M0) and the two layers cannot be told apart
+    hit = np.zeros(len(P))
+    todo = np.arange(len(P))
+    for _ in range(4):
+        t = cast(scene, P[todo] + (hit[todo] + 1e-4)[:, None] * r_ref[todo], r_ref[todo])["t_hit"]
+        hit[todo] += t + 1e-4
+        fin = np.isfinite(t)
+        Q = P[todo] + np.where(fin, hit[todo], 0.0)[:, None] * r_ref[todo]
+        near = fin & (np.abs(Q @ p[:3] + p[3]) < min_gap)
+        todo = todo[near]
+        if len(todo) == 0:
+            break
+    hit[todo] = np.inf  # still on the plane: no reflected geometry
+    if bounds is not None:  # rays leaving G through a hole: the box of G as a room proxy
+        lo, hi = np.asarray(bounds[0], np.float64), np.asarray(bounds[1], np.float64)
+        miss = ~np.isfinite(hit)
+        if miss.any():
+            d = r_ref[miss]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tb = np.where(d > 0, (hi - P[miss]) / d, np.where(d < 0, (lo - P[miss]) / d, np.inf))
+            te = tb.min(1)
+            hit[np.flatnonzero(miss)[(te > min_gap) & np.isfinite(te)]] = te[(te > min_gap) & np.isfinite(te)]
     good = np.isfinite(hit)
-    Xm = c + r * (rng0 + hit + 1e-4)[:, None]
+    Xm = c + r * (rng0 + hit)[:, None]
     Xm[~good] = np.nan
     pts[sel] = Xm
     zz = np.where(good, z[sel] * (rng0 + hit) / rng0, 0.0)
@@ -230,3 +262,18 @@ def depth_points(camera: Camera, depth: np.ndarray) -> np.ndarray:
     uv = camera.pixel_grid().reshape(-1, 2)
     X = camera.unproject(uv, np.where(depth > 0, depth, np.nan).reshape(-1))
     return X.reshape(depth.shape + (3,))
+
+
+def sample_mesh(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) points uniformly distributed on a triangle mesh (area-weighted, deterministic)."""
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    if len(F) == 0 or area.sum() <= 0:
+        raise ValueError("mesh has no area to sample")
+    rng = np.random.default_rng(seed)
+    t = rng.choice(len(F), size=int(n), p=area / area.sum())
+    r1, r2 = rng.random(int(n)), rng.random(int(n))
+    s1 = np.sqrt(r1)
+    return (1 - s1)[:, None] * a[t] + (s1 * (1 - r2))[:, None] * b[t] + (s1 * r2)[:, None] * c[t]

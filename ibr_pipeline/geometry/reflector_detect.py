@@ -56,6 +56,9 @@ def score_candidate(views: list[ViewGeom], neighbours: int = 2, tol: float = 0.0
             "pairs": counts}
 
 
-def is_reflective(score: dict, threshold: float) -> bool:
-    """A plane whose surface warp leaves a median error above `threshold` is a reflector."""
-    return score.get("surface_error") is not None and score["surface_error"] > threshold
+def is_reflective(score: dict, threshold: float, min_pairs: int = 1) -> bool:
+    """A plane whose surface warp leaves a median error above `threshold` over at least
+    `min_pairs` view pairs is a reflector (one or two pairs are too weak: a wall at the edge of two
+    views with depth errors scored like a reflector on the real workspace)."""
+    return (score.get("surface_error") is not None and score["surface_error"] > threshold
+            and score.get("pairs", 0) >= min_pairs)

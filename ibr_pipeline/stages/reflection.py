@@ -27,14 +27,19 @@ LAYER_FILES = ("I0.png", "I1.png", "beta.npy", "M0.ply", "M1.ply")
 @dataclass(frozen=True)
 class ReflectionConfig(StageConfig):
     use_user_reflectors: bool = param(True, "use input/reflectors.json planes (the paper's UI)")
-    detect: bool = param(True, "detect reflective planes of G by the multi-view consistency cue")
+    detect: str = param("auto", "detect reflective planes of G by the multi-view consistency cue: "
+                        "'auto' = only when no input/reflectors.json is given (or it is not used), "
+                        "'on' = always (user planes win on overlap), 'off' = never",
+                        choices=("auto", "on", "off"))
     ransac_distance: float = param(0.008, "RANSAC inlier distance for planes of G (m)", min=1e-4, max=0.5)
     max_planes: int = param(30, "RANSAC planes extracted from G (detection candidates)", min=1, max=500)
     detect_threshold: float = param(0.02, "median surface-warp error above which a plane is a "
                                     "reflector (linear intensity)", min=1e-4, max=1.0)
+    detect_min_pairs: int = param(4, "view pairs a detected reflector must be scored on",
+                                  min=1, max=1000)
     mirror_ratio: float = param(0.5, "mirror-warp / surface-warp error below which a detected "
                                 "reflector is a mirror (beta = 1, I0 = 0)", min=0.0, max=10.0)
-    work_scale: float = param(0.5, "working resolution as a fraction of the image size (demo budget; "
+    work_scale: float = param(1.0, "working resolution as a fraction of the image size (demo budget; "
                               "1.0 = full quality)",
                               min=0.1, max=1.0)
     max_neighbours: int = param(6, "N_k size (§4.3.1: top 6)", min=1, max=30)
@@ -50,16 +55,28 @@ class ReflectionConfig(StageConfig):
     gn_iterations: int = param(5, "Gauss-Newton iterations of the grid warp (5)", min=0, max=100)
     use_warp: bool = param(True, "refine the init flow by the ARAP grid warp (Eqs. 4-5)")
     lambda_s: float = param(0.04, "Eq. 7 smoothness weight (0.04)", min=0.0, max=1e4)
-    lambda_p: float = param(0.01, "Eq. 7 prior weight (0.01)", min=0.0, max=1e4)
+    lambda_p: float = param(0.0, "Eq. 7 prior weight (paper: 0.01; 0 by default here: with 2-3 "
+                            "partial neighbours it pulls R = beta I1 towards 0, see "
+                            "docs/REFLECTION.md)", min=0.0, max=1e4)
     lambda_mv: float = param(0.05, "Eq. 7 multi-view weight after aggregation (0.05)", min=0.0, max=1e4)
     outer_iterations: int = param(2, "alternations image/geometry per pass", min=0, max=50)
-    image_iterations: int = param(30, "L-BFGS-B iterations per image step", min=1, max=10000)
+    image_iterations: int = param(150, "preconditioned CG iterations per image-step solve (the "
+                                  "image step is a sparse linear least-squares problem)",
+                                  min=1, max=10000)
     pose_iterations: int = param(5, "L-BFGS iterations per (R, T) step", min=0, max=1000)
     multiview: bool = param(False, "second pass with multi-view consistency (§4.3.3, Eqs. 11-13); "
                              "off by default: it decomposes every neighbour too (~7x the time)")
     saturation: float = param(0.98, "highlight threshold: pixels left out of E_d", min=0.5, max=1.0)
     min_mask_pixels: int = param(100, "smaller reflector masks (at working size) are ignored",
                                  min=1, max=10**7)
+    min_gap: float = param(0.03, "M1: reflected-ray hits closer than this to the plane (noise of a "
+                           "fused G) are skipped (m)", min=0.0, max=1.0)
+    use_prior: bool = param(True, "initialise / regularise R = beta I1 by the colour of the "
+                            "reflected scene point seen directly by other views "
+                            "(geometry/reflection_prior.py)")
+    lambda_scene: float = param(2.0, "weight of that prior in the image step", min=0.0, max=1e4)
+    prior_tol: float = param(0.03, "depth tolerance (x depth) of the prior's visibility test",
+                             min=1e-4, max=1.0)
     mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
 
     def check(self, prefix: str) -> None:
@@ -75,8 +92,8 @@ def options(cfg: ReflectionConfig):
         overlap_tol=cfg.overlap_tol, grid=(cfg.grid_x, cfg.grid_y), w_r=cfg.w_r, w_a=cfg.w_a,
         gn_iterations=cfg.gn_iterations, use_warp=cfg.use_warp, lambda_s=cfg.lambda_s,
         lambda_p=cfg.lambda_p, lambda_mv=cfg.lambda_mv, outer_iterations=cfg.outer_iterations,
-        image_iterations=cfg.image_iterations, pose_iterations=cfg.pose_iterations,
-        saturation=cfg.saturation)
+        image_iterations=cfg.image_iterations, cg_iterations=cfg.image_iterations, pose_iterations=cfg.pose_iterations,
+        saturation=cfg.saturation, lambda_scene=cfg.lambda_scene if cfg.use_prior else 0.0)
 
 
 # --- declarations -------------------------------------------------------------------------------
@@ -159,6 +176,29 @@ class Loader:
         return self._raw[name]
 
     def mask(self, name, refl):
+        key = ("mask", name, refl["name"])
+        if key not in self._geo:
+            self._geo[key] = self._mask(name, refl)
+        return self._geo[key]
+
+    def prior(self, name, refl, reflectors):
+        """beta * reflected-scene colour (H, W, 3), NaN where unobserved (reflection_prior.py)."""
+        import numpy as np
+
+        from ..geometry.reflection_prior import reflected_scene_colour
+        g = self.geom(name, refl)
+        views = []
+        for o in self.names:
+            _, _, wc, wi, wd = self.raw(o)
+            ex = np.zeros(wd.shape, bool)
+            for r in reflectors:
+                ex |= self.mask(o, r)
+            views.append((wc, wi, wd, ex))
+        X1 = np.where(g.mask[..., None], g.X1, np.nan)
+        C = reflected_scene_colour(X1, refl["plane"], views, tol=self.cfg.prior_tol)
+        return float(refl.get("beta") or 1.0) * C
+
+    def _mask(self, name, refl):
         import cv2
         import numpy as np
 
@@ -181,7 +221,8 @@ class Loader:
         from ..geometry.planes import depth_points, mirror_points
         _, _, wc, wi, wd = self.raw(name)
         m = self.mask(name, refl)
-        X1, D1 = mirror_points(wc, refl["plane"], m, self.scene)
+        X1, D1 = mirror_points(wc, refl["plane"], m, self.scene, min_gap=self.cfg.min_gap,
+                               bounds=(self.G.vertices.min(0), self.G.vertices.max(0)))
         g = ViewGeom(name, wc, wi, wd, m, depth_points(wc, wd), X1, D1)
         self._geo[key] = g
         return g
@@ -194,13 +235,22 @@ def _fingerprint(ctx) -> str:
     for key in [REGISTERED_CAMERAS, "global/mesh.ply"] + _user_reflectors_key(ctx):
         h.update(key.encode() + file_sha256(ctx.ws.path(key)).encode())
     cfg = ctx.config
-    h.update(json.dumps([cfg.use_user_reflectors, cfg.detect, cfg.ransac_distance,
+    h.update(json.dumps([cfg.use_user_reflectors, detect_enabled(ctx), cfg.detect_min_pairs,
+                         cfg.min_gap, cfg.ransac_distance,
                          cfg.detect_threshold, cfg.mirror_ratio, cfg.work_scale,
                          cfg.min_mask_pixels]).encode())
-    if cfg.detect:
+    if detect_enabled(ctx):
         for v in registered_views(ctx):
             h.update(file_sha256(ctx.ws.path(ctx.ws.view_file(v, "depth.npy"))).encode())
     return h.hexdigest()[:16]
+
+
+def detect_enabled(ctx) -> bool:
+    """`detect`: 'on' / 'off', or 'auto' = detect only when no user reflectors are used."""
+    mode = ctx.config.detect
+    if mode == "auto":
+        return not (ctx.config.use_user_reflectors and ctx.ws.exists("input/reflectors.json"))
+    return mode == "on"
 
 
 def _same_plane(a, b, angle_deg=5.0, offset=0.05) -> bool:
@@ -228,16 +278,13 @@ def compute_planes(ctx, loader: Loader) -> dict:
             d["source"] = "user"
             user.append(d)
     detected, candidates = [], []
-    if cfg.detect:
-        import open3d as o3d
+    if detect_enabled(ctx):
+        from ..geometry.planes import sample_mesh
         G = loader.G
-        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(G.vertices.astype(np.float64)),
-                                      o3d.utility.Vector3iVector(G.faces))
-        area = m.get_surface_area()
-        pts = np.asarray(m.sample_points_uniformly(int(min(200000, max(20000, area * 2000))),
-                                                   seed=0).points) \
-            if "seed" in o3d.geometry.TriangleMesh.sample_points_uniformly.__doc__ else \
-            np.asarray(m.sample_points_uniformly(int(min(200000, max(20000, area * 2000)))).points)
+        V, F = G.vertices.astype(np.float64), np.asarray(G.faces)
+        area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                    axis=1).sum()
+        pts = sample_mesh(V, F, int(min(200000, max(20000, area * 2000))), seed=0)
         centres = np.array([loader.cams[v].center for v in loader.names])
         for i, c in enumerate(ransac_planes(pts, distance=cfg.ransac_distance, seed=0,
                                             max_planes=cfg.max_planes, min_points=200)):
@@ -247,22 +294,21 @@ def compute_planes(ctx, loader: Loader) -> dict:
             cand = {"name": f"detected_{i}", "plane": [float(x) for x in pl],
                     "polygon": c["polygon"].tolist(), "beta": None, "masks": {}}
             views = []
-            for v in loader.names:
-                g = loader.geom(v, cand)
-                if g.mask.sum() >= cfg.min_mask_pixels:
-                    views.append(g)
+            for v in loader.names:  # mask first (cheap); mirror points only where seen
+                if loader.mask(v, cand).sum() >= cfg.min_mask_pixels:
+                    views.append(loader.geom(v, cand))
             score = score_candidate(views) if len(views) >= 2 else {"surface_error": None}
             cand["score"] = score
             cand["views"] = len(views)
             candidates.append({k: cand[k] for k in ("name", "plane", "score", "views")})
-            if is_reflective(score, cfg.detect_threshold):
+            if is_reflective(score, cfg.detect_threshold, cfg.detect_min_pairs):
                 if score.get("mirror_ratio") is not None and score["mirror_ratio"] < cfg.mirror_ratio:
                     cand["beta"] = 1.0  # a mirror (§4.3.3 special case)
                 cand["source"] = "detected"
                 detected.append(cand)
-    merged = list(user)
-    for d in detected:
-        if not any(_same_plane(d["plane"], u["plane"]) for u in user):
+    merged = list(user)  # user planes win; among detections the best-supported piece wins
+    for d in sorted(detected, key=lambda d: -(d["score"].get("pairs") or 0)):
+        if not any(_same_plane(d["plane"], u["plane"]) for u in merged):
             merged.append(d)
     return {"format": "ibr_pipeline.reflectors/1", "reflectors": merged, "candidates": candidates,
             "fingerprint": _fingerprint(ctx)}
@@ -302,20 +348,46 @@ def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> di
     if not mirror and len(nbs) < cfg.min_neighbours:
         info["discarded"] = f"{len(nbs)} neighbour(s) with > {cfg.min_overlap:.0%} overlap"
         return info
-    res = decompose(ref, nbs, opts, beta=beta, mirror=mirror)
+    prior = None
+    if cfg.use_prior and not mirror:
+        prior = loader.prior(view, refl, loader.reflectors)
+    res = decompose(ref, nbs, opts, beta=beta, mirror=mirror, R_prior=prior)
     history = [dict(h, **{"pass": 1}) for h in res["history"]]
+    loader._geo[("first", view, refl["name"])] = res["R"]
     if cfg.multiview and not mirror and nbs:  # §4.3.3: aggregate the neighbours' first pass
         prev = {}
         for nb in nbs:
             nn = select_neighbours(nb, [o for o in [ref] + others if o.name != nb.name
                                         and o.mask.sum() >= cfg.min_mask_pixels], opts)
             nbn = [loader.geom(n, refl) for n, _ in nn]
-            if nbn:
-                prev[nb.name] = decompose(nb, nbn, opts, beta=beta)["R"]
-        res = decompose(ref, nbs, opts, beta=beta, aggregate_from=prev, R_init=res["R"])
+            key = ("first", nb.name, refl["name"])
+            if key in loader._geo:  # first pass already computed by this worker
+                prev[nb.name] = loader._geo[key]
+            elif nbn:
+                nbp = loader.prior(nb.name, refl, loader.reflectors) if cfg.use_prior else None
+                prev[nb.name] = loader._geo[key] = decompose(nb, nbn, opts, beta=beta,
+                                                             R_prior=nbp)["R"]
+        res = decompose(ref, nbs, opts, beta=beta, aggregate_from=prev, R_init=res["R"],
+                        R_prior=prior)
         history += [dict(h, **{"pass": 2}) for h in res["history"]]
     info.update(R=res["R"], pose=res["pose"], history=history, mask=ref.mask, geom=ref)
     return info
+
+
+_LOADERS: dict = {}
+
+
+def _loader(ctx) -> Loader:
+    """One Loader per worker process and (workspace, config, inputs): a worker that runs several
+    views reuses the masks / mirror points / images of the others instead of recomputing them."""
+    stamps = tuple((p.stat().st_mtime_ns, p.stat().st_size) for p in
+                   (ctx.ws.path(ctx.ws.view_file(v, "depth.npy")) for v in registered_views(ctx))
+                   if p.is_file())
+    key = (str(ctx.ws.root), ctx.config.digest(), _fingerprint(ctx), stamps)
+    if key not in _LOADERS:
+        _LOADERS.clear()
+        _LOADERS[key] = Loader(ctx)
+    return _LOADERS[key]
 
 
 def run(ctx: StageContext, view: str) -> None:
@@ -328,8 +400,9 @@ def run(ctx: StageContext, view: str) -> None:
 
     cfg = ctx.config
     ws = ctx.ws
-    loader = Loader(ctx)
+    loader = _loader(ctx)
     planes = get_planes(ctx, loader)
+    loader.reflectors = planes["reflectors"]
     opts = options(cfg)
     img, _depth, wc, _wi, _wd = loader.raw(view)
     H, W = img.shape[:2]
@@ -401,6 +474,6 @@ def _rodrigues_np(w):
 
 
 STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",
-              config=ReflectionConfig, version="1", run=run, per_view=True,
+              config=ReflectionConfig, version="2", run=run, per_view=True,
               inputs=inputs, view_inputs=view_inputs, view_outputs=view_outputs,
               views=registered_views)

@@ -57,7 +57,7 @@ def tiny_ws(tiny_scene, tmp_path_factory):
     from ibr_pipeline.bench.reflection import make_gt_workspace, run_stage
     scene = tiny_scene[0]
     ws = make_gt_workspace(scene, tmp_path_factory.mktemp("refl") / "ws")
-    res = run_stage(ws, {"detect": False})
+    res = run_stage(ws, {"detect": "off"})
     assert res[0].result == "ran", res
     return scene, ws
 
@@ -115,6 +115,10 @@ def test_stage_layers_against_ground_truth(tiny_ws):
         ok = (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
         assert ok.mean() > 0.99 and (beta[y[ok], x[ok]] > 0).mean() > 0.95
         assert read_ply(ws.path(ws.view_file(name, "M0.ply"))).faces.shape[0] > 0
+        for r in rep["reflectors"]:  # the image steps (sparse solves) never raise Eq. 7
+            h = {x["step"]: x["energy"] for x in r["history"] if x["step"] in ("start", "end")}
+            if h:
+                assert h["end"] <= h["start"] * (1 + 1e-9), r["history"]
     assert seen >= 1
 
 
@@ -140,3 +144,65 @@ def test_bad_input_and_config(tiny_ws, tmp_path):
     ctx = StageContext(bws, "reflection", build_config(ReflectionConfig, "reflection", {}), bws.scene())
     with pytest.raises(InputError, match="depth.npy"):
         Loader(ctx).raw(name)
+
+
+def test_block_pcg_solves_the_normal_equations_with_fixed_variables():
+    import scipy.sparse as sp
+    from ibr_pipeline.geometry.decompose import _block_pcg
+    rng = np.random.default_rng(0)
+    A = sp.random(300, 120, density=0.05, random_state=1) + sp.identity(300, format="csr")[:, :120]
+    H = (A.T @ A + 0.1 * sp.identity(120)).tocsr()
+    g = rng.standard_normal((120, 3))
+    x = _block_pcg(H, g, np.zeros((120, 3)), np.ones((120, 3), bool), iterations=500, tol=1e-10)
+    assert np.allclose(x, np.linalg.solve(H.toarray(), g), atol=1e-6)
+    free = np.ones((120, 3), bool)
+    free[:10] = False
+    x0 = np.full((120, 3), 0.25)
+    x = _block_pcg(H, g, x0, free, iterations=500, tol=1e-10)
+    assert np.all(x[:10] == 0.25)
+    Hd = H.toarray()
+    ref = np.linalg.solve(Hd[10:, 10:], g[10:] - Hd[10:, :10] @ x0[:10])
+    assert np.allclose(x[10:], ref, atol=1e-6)
+
+
+def test_mirror_points_skip_a_thick_noisy_reflector():
+    """A fused G has thickness at the reflector: M1 must come from the scene behind the camera,
+    not from the reflector's own surface (else M1 = M0 and the layers cannot be separated)."""
+    from ibr_pipeline.geometry.planes import mirror_points
+    from ibr_pipeline.render.raycast import build_scene
+    from ibr_pipeline.scene import Camera
+
+    def quad(x):
+        v = np.array([[x, -3, -3], [x, 3, -3], [x, 3, 3], [x, -3, 3]], float)
+        return v, np.array([[0, 1, 2], [0, 2, 3]])
+    parts = [quad(0.0), quad(0.006), quad(-0.004), quad(2.0)]  # reflector slab + far wall
+    V = np.concatenate([p[0] for p in parts])
+    F = np.concatenate([p[1] + 4 * i for i, p in enumerate(parts)])
+    K = np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+    cam = Camera.look_at([1.0, 0.1, 0.2], [0.0, 0.0, 0.0], [0, 0, 1], K, 64, 48)
+    mask = np.ones((48, 64), bool)
+    X1, D1 = mirror_points(cam, [1.0, 0, 0, 0.0], mask, build_scene(V, F))
+    ok = D1 > 0
+    assert ok.mean() > 0.9
+    assert np.allclose(X1[ok][:, 0], -2.0, atol=1e-3)  # mirror image of the wall at x = 2
+    X1n, D1n = mirror_points(cam, [1.0, 0, 0, 0.0], mask, build_scene(V, F), min_gap=0.0)
+    assert np.abs(X1n[D1n > 0][:, 0]).max() < 0.05  # the old behaviour: M1 on the reflector
+
+
+def test_detect_auto_only_without_user_reflectors(tiny_ws):
+    from ibr_pipeline.config import build_config
+    from ibr_pipeline.errors import ConfigError
+    from ibr_pipeline.runner import StageContext
+    from ibr_pipeline.stages.reflection import ReflectionConfig, detect_enabled
+    _, ws = tiny_ws
+    assert ws.exists("input/reflectors.json")
+
+    def ctx(**kw):
+        return StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", kw),
+                            ws.scene())
+    assert ReflectionConfig().detect == "auto"
+    assert not detect_enabled(ctx())  # user planes given: the expensive detection is skipped
+    assert detect_enabled(ctx(use_user_reflectors=False))
+    assert detect_enabled(ctx(detect="on")) and not detect_enabled(ctx(detect="off"))
+    with pytest.raises(ConfigError):
+        build_config(ReflectionConfig, "reflection", {"detect": "maybe"})
