@@ -1,6 +1,206 @@
-"""Stage `supersample`: DSRNet supersampling. Not built yet (issue #8, Xu et al. §5.2)."""
+"""Stage `supersample`: train DSRNet on the scene's own capture views (Xu et al. §5.2, §6).
+
+Leave-one-out renders of the registered capture views at 1/scale resolution (the real renderer of
+`render_views`, issue #7: `render.ibr.IBRModel`, rendering each view without itself) are paired
+with the captured full-resolution images; consecutive capture views give the previous frame;
+90 % / 10 % split (§6), the validation views are never trained on. Writes the trained network
+`nn/dsrnet.pt` (read by `nn.infer.SuperSampler`, `ibr render --supersample`), `nn/train.json`
+(options, steps, time, validation PSNR/SSIM against bilinear/bicubic upsampling) and `nn/loss.png`.
+
+An interrupted run resumes: renders are cached in `nn/cache/` and the training state in
+`nn/checkpoint.pt` (both removed after success, and ignored when the inputs or options changed).
+`renderer = "standin"` is for tests/benchmarks on synthetic scenes only (nn/data.py says what it is).
+"""
 from __future__ import annotations
 
-from .common import planned
+import hashlib
+import json
+import logging
+import time
+from dataclasses import dataclass
 
-STAGE = planned('supersample', 'DSRNet supersampling', 'issue #8, Xu et al. §5.2')
+from ..config import StageConfig, param
+from ..errors import ConfigError, InputError
+from ..runner import Stage, StageContext
+from .common import REGISTERED_CAMERAS, registered_cameras, registered_views
+
+log = logging.getLogger("ibr_pipeline.supersample")
+
+MODEL, TRAIN_JSON, LOSS_PNG = "nn/dsrnet.pt", "nn/train.json", "nn/loss.png"
+CHECKPOINT, CACHE = "nn/checkpoint.pt", "nn/cache"
+
+
+@dataclass(frozen=True)
+class SupersampleConfig(StageConfig):
+    preset: str = param("cpu", "channel widths: 'cpu' (trains on 2 cores in the demo budget) or "
+                        "'paper' (RSSNet/DSRNet widths, for a GPU)", choices=("cpu", "paper"))
+    scale: int = param(2, "supersampling factor: renders at 1/scale resolution (§5.2: x2)",
+                       choices=(2, 3, 4))
+    use_mvr: bool = param(True, "motion-vector rectification (Eq. 16); off = Table 3 'W/O MVR'")
+    steps: int = param(1200, "training steps (cosine learning-rate decay over them)",
+                       min=1, max=1_000_000)
+    time_budget_s: float = param(150.0, "wall-clock budget of the whole stage (renders + "
+                                 "training); training stops early and saves; 0 = none",
+                                 min=0.0, max=7 * 86400.0)
+    batch: int = param(4, "crops per step", min=1, max=256)
+    crop: int = param(48, "crop side in low-resolution pixels", min=8, max=1024)
+    lr: float = param(1e-3, "Adam learning rate", min=1e-7, max=1.0)
+    perceptual_weight: float = param(0.1, "w of the filter/VGG term (§5.2.2: w = 0.1)",
+                                     min=0.0, max=100.0)
+    l1_weight: float = param(0.0, "optional L1 image term (not in §5.2.2's equation; Table 4 "
+                             "mentions an L1 loss); 0 = the paper's loss", min=0.0, max=100.0)
+    warp_weight: float = param(1.0, "weight of L_warp (§5.2.2; not given in the paper)",
+                               min=0.0, max=100.0)
+    vgg_weights: str = param("", "path of a VGG-16 features state dict for the perceptual loss "
+                             "(none can be downloaded here); empty = fixed filter bank")
+    val_fraction: float = param(0.1, "share of capture views held out for validation (§6: 0.1)",
+                                min=0.05, max=0.5)
+    seed: int = param(0, "seed of the weights and the crops (training is deterministic)",
+                      min=0, max=2**31 - 1)
+    device: str = param("auto", "torch device", choices=("auto", "cpu", "cuda"))
+    threads: int = param(0, "torch CPU threads; 0 = auto (all cores, 1 when the machine is "
+                         "already loaded)", min=0, max=512)
+    checkpoint_every: int = param(100, "steps between checkpoints / validation", min=1,
+                                  max=1_000_000)
+    renderer: str = param("ibr", "low-res renderer: 'ibr' (render_views, #7) or 'standin' "
+                          "(synthetic scenes only: GT with IBR-like artefacts, for tests)",
+                          choices=("ibr", "standin"))
+    progress: bool = param(True, "show progress bars")
+
+    def check(self, prefix: str) -> None:
+        if self.vgg_weights and not self.vgg_weights.endswith((".pt", ".pth")):
+            raise ConfigError(prefix + "vgg_weights", f"expected a .pt/.pth file, got "
+                              f"{self.vgg_weights!r}")
+
+
+def inputs(ctx: StageContext) -> list[str]:
+    keys = [REGISTERED_CAMERAS]
+    if not ctx.ws.exists(REGISTERED_CAMERAS):
+        return keys
+    views = registered_views(ctx)
+    keys += [ctx.scene.view(v).image for v in views]
+    if ctx.config.renderer == "ibr":  # what render.ibr.IBRModel reads (render_views, #7)
+        for v in views:
+            keys += [ctx.ws.view_file(v, "edges.png"), ctx.ws.view_file(v, "mesh.ply")]
+            # two-layer files only where `reflection` wrote them (single layer otherwise)
+            keys += [k for k in (ctx.ws.view_file(v, f) for f in
+                                 ("layers.json", "M0.ply", "M1.ply", "I0.png", "I1.png", "beta.npy"))
+                     if ctx.ws.exists(k)]
+    else:
+        keys += ["input/cameras.json"]
+    return keys
+
+
+def _digest(ctx: StageContext) -> str:
+    """Cheap fingerprint of the inputs + config for the resume cache (size, mtime of each input)."""
+    h = hashlib.sha256(ctx.config.digest().encode())
+    for k in inputs(ctx):
+        p = ctx.ws.path(k)
+        st = p.stat() if p.is_file() else None
+        h.update(f"{k}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1};".encode())
+    return h.hexdigest()[:24]
+
+
+def run(ctx: StageContext) -> None:
+    import shutil
+
+    import numpy as np
+
+    from ..io.images import read_image
+    from ..nn.data import (IBRRenderer, StandInRenderer, make_sample, render_low_res,
+                           sequence_pairs, split_views)
+    from ..nn.model import count_parameters, preset
+    from ..nn.train import (TrainOptions, cpu_threads, evaluate, plot_losses, save_model,
+                            train)
+    from ..workspace import atomic_path
+
+    t_start = time.perf_counter()
+    ws, cfg = ctx.ws, ctx.config
+    cams = registered_cameras(ws)
+    names = registered_views(ctx)
+    if cfg.vgg_weights and not ws.path(cfg.vgg_weights).is_file():
+        raise InputError(f"{ws.path(cfg.vgg_weights)}: supersample.vgg_weights file not found")
+    train_names, val_names = split_views(names, cfg.val_fraction)
+    if cfg.renderer == "standin":
+        renderer = StandInRenderer(ws.input_root, seed=cfg.seed)
+    else:
+        renderer = IBRRenderer(ws)
+
+    digest = _digest(ctx)
+    cache_dir = ws.path(CACHE)
+    meta = cache_dir / "meta.json"
+    if meta.is_file() and json.loads(meta.read_text()).get("digest") != digest:
+        shutil.rmtree(cache_dir, ignore_errors=True)  # a killed run with other inputs
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(meta) as tmp:
+        tmp.write_text(json.dumps({"digest": digest}))
+
+    def cache(name, compute):
+        from ..workspace import view_key
+        f = cache_dir / f"{view_key(name)}.npz"
+        if f.is_file():
+            with np.load(f) as z:
+                return z["color"], z["depth"]
+        color, depth = compute()
+        with atomic_path(f) as tmp:
+            np.savez(tmp, color=color, depth=depth)
+        return color, depth
+
+    t0 = time.perf_counter()
+    frames = render_low_res(names, cams, renderer, cfg.scale, cfg.progress, cache)
+    render_s = time.perf_counter() - t0
+    targets = {}
+    for n in names:
+        img = read_image(ws.path(ctx.scene.view(n).image))
+        if img.shape[:2] != (cams[n].height, cams[n].width):
+            raise InputError(f"{ws.path(ctx.scene.view(n).image)}: image is "
+                             f"{img.shape[1]}x{img.shape[0]}, its camera "
+                             f"{cams[n].width}x{cams[n].height}")
+        targets[n] = img
+    train_samples = [make_sample(c, p, frames, targets[c])
+                     for c, p in sequence_pairs(train_names, train_names)]
+    val_samples = [make_sample(c, p, frames, targets[c]) for c, p in sequence_pairs(names, val_names)
+                   if p not in val_names]
+
+    model_cfg = preset(cfg.preset, scale=cfg.scale, use_mvr=cfg.use_mvr)
+    reserve = 10.0 + 2.0 * len(val_samples)  # final evaluation + saving (measured ~16 s loaded)
+    budget = 0.0
+    if cfg.time_budget_s > 0:
+        budget = max(1e-3, cfg.time_budget_s - (time.perf_counter() - t_start) - reserve)
+    opts = TrainOptions(steps=cfg.steps, time_budget_s=budget, batch=cfg.batch, crop=cfg.crop,
+                        lr=cfg.lr, perceptual_weight=cfg.perceptual_weight,
+                        warp_weight=cfg.warp_weight, l1_weight=cfg.l1_weight,
+                        vgg_weights=str(ws.path(cfg.vgg_weights)) if cfg.vgg_weights else "",
+                        seed=cfg.seed, checkpoint_every=cfg.checkpoint_every, device=cfg.device, threads=cfg.threads,
+                        progress=cfg.progress)
+    result = train(model_cfg, train_samples, val_samples, opts, ws.path(CHECKPOINT), digest)
+    device = next(result.model.parameters()).device
+    val = evaluate(result.model, val_samples, device)
+    save_model(ws.path(MODEL), result.model, {"trained_steps": result.steps})
+    plot_losses(result.history, ws.path(LOSS_PNG),
+                f"DSRNet ({cfg.preset}, {'MVR' if cfg.use_mvr else 'no MVR'}), {result.steps} steps")
+    report = {
+        "preset": cfg.preset, "model": model_cfg.to_dict(),
+        "parameters": count_parameters(result.model), "renderer": cfg.renderer,
+        "train_views": train_names, "val_views": val_names,
+        "train_pairs": len(train_samples), "val_pairs": len(val_samples),
+        "steps": result.steps, "steps_planned": cfg.steps, "resumed_from_step": result.resumed_from,
+        "stopped_by_time_budget": result.stopped_by_budget,
+        "seconds": {"render": render_s, "train": result.seconds,
+                    "total": time.perf_counter() - t_start},
+        "device": str(device), "validation": val,
+        "torch_threads": cpu_threads(cfg.threads) if device.type == "cpu" else None,
+        "final_loss": float(np.mean(result.history["loss"][-20:])) if result.history["loss"] else None,
+    }
+    if val:
+        log.info("supersample: %d steps in %.0f s; held-out PSNR %.2f dB (bilinear %.2f, bicubic "
+                 "%.2f)", result.steps, result.seconds, val["psnr"], val["psnr_bilinear"],
+                 val["psnr_bicubic"])
+    ws.write_json(TRAIN_JSON, report)
+    ws.path(CHECKPOINT).unlink(missing_ok=True)
+    shutil.rmtree(cache_dir, ignore_errors=True)
+
+
+STAGE = Stage(name="supersample", help="train DSRNet (Xu §5.2) on leave-one-out renders",
+              config=SupersampleConfig, version="1", run=run, inputs=inputs,
+              outputs=(MODEL, TRAIN_JSON, LOSS_PNG))

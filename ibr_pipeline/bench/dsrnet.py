@@ -1,0 +1,262 @@
+"""Benchmark of DSRNet (issue #8, Xu et al. §5.2, §6.2): accuracy against synthetic ground truth
+and speed.
+
+    python -m ibr_pipeline.bench.dsrnet [--scene tiny|mirror_room | --folder SYNTH_DIR]
+        [--steps 1200] [--time-budget 0] [--preset cpu|paper] [--device cpu|cuda|auto]
+        [--no-ablation] [--sequence 12] [--repeats 5] [--out bench_dsrnet.json]
+
+Data: the STAND-IN low-res renderer (nn/data.py: ground truth + IBR-like artefacts), so the figures
+say what the network does with blur/misalignment/holes, not with real IBR renders. With
+`--workspace WS` (a workspace of a synthetic input after view_mesh, + reflection) the real
+leave-one-out renders of issue #7 (`render.ibr.IBRModel`) are used instead, for training,
+validation, the full-resolution baseline and the dense sequence (ground truth from the tracer).
+
+Measured:
+* held-out capture views (the 10 % split, never trained on): PSNR/SSIM of DSRNet with MVR,
+  DSRNet without MVR (Table 3 ablation, trained separately with the same steps), bilinear and
+  bicubic upsampling of the same half-resolution input, and the full-resolution stand-in render
+  (same artefacts, no DSRNet);
+* a dense held-out sequence (`--sequence N` consecutive frames of the synthetic scene's test loop,
+  traced here; never trained on): the same metrics per frame, and flicker = mean over frames of
+  |(O_t − O_{t−1}) − (G_t − G_{t−1})| (temporal change that the ground truth does not have);
+* speed: training steps/s and total, inference per frame at 2x the input size given by
+  `--infer-size` (default 640x480 output), median of `--repeats`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SAMPLE = Path(__file__).resolve().parents[2] / "sample_data" / "mirror_room"
+
+
+def _scene_folder(args) -> Path:
+    if args.folder:
+        return Path(args.folder)
+    if args.scene == "mirror_room":
+        return SAMPLE
+    from ..synthetic.generate import SynthOptions, generate
+    out = Path(tempfile.mkdtemp(prefix="bench_dsrnet_")) / "tiny"
+    generate(SynthOptions("tiny", seed=3, progress=False), out)
+    return out
+
+
+def dense_sequence(folder: Path, n: int):
+    """n consecutive frames of the scene's test loop (held out: not on the capture path), traced
+    with the synthetic ray tracer: [(name, camera, image, depth)]."""
+    from ..synthetic.paths import test_path
+    from ..synthetic.scenes import build_world
+    from ..synthetic.tracer import Tracer
+
+    meta = json.loads((folder / "gt/scene.json").read_text())
+    o = meta["options"]
+    world = build_world(o["name"], o["seed"])
+    # the test loop sampled densely (96 frames, ~3.75 degrees apart): consecutive frames as a
+    # viewer would see them; the loop is not the capture path (docs/SYNTHETIC.md)
+    cams = test_path(world, 96, o["width"], o["height"], o["seed"], every=1)
+    tracer = Tracer(world)
+    out = []
+    for i, cam in enumerate(cams[1:n + 1]):  # frame 0 is a stored test view; 1..n are in between
+        r = tracer.trace(cam)
+        img = np.clip(np.round(r["image"] * 255) / 255, 0, 1).astype(np.float32)
+        out.append((f"seq_{i:03d}.png", cam, img, r["depth"].astype(np.float32)))
+    return out
+
+
+def _metrics(gt, img):
+    from .. import metrics
+    return metrics.psnr(gt, img), metrics.ssim(gt, img)
+
+
+def _run_model(model, sample, device):
+    import torch
+
+    from ..nn.data import to_tensors
+    b = {k: v.to(device) for k, v in to_tensors([sample]).items()}
+    with torch.no_grad():
+        y = model(b["cur"], b["depth"], b["prev"], b["depth_prev"], b["flow"])["image"]
+    return y.clamp(0, 1)[0].permute(1, 2, 0).cpu().numpy()
+
+
+def evaluate_methods(samples, models: dict, full_res: dict, device, scale: int) -> dict:
+    """Per method: mean PSNR/SSIM over samples, plus per-frame outputs for flicker."""
+    from ..nn.infer import upsample
+    res, outs = {}, {}
+    for s in samples:
+        cands = {name: _run_model(m, s, device) for name, m in models.items()}
+        cands["bilinear"] = upsample(s.cur.color, scale, "bilinear")
+        cands["bicubic"] = upsample(s.cur.color, scale, "bicubic")
+        if s.name in full_res:
+            cands["full_res_render"] = full_res[s.name]
+        for k, img in cands.items():
+            p, q = _metrics(s.target, img)
+            res.setdefault(k, {"psnr": [], "ssim": []})
+            res[k]["psnr"].append(p)
+            res[k]["ssim"].append(q)
+            outs.setdefault(k, []).append(img)
+    summary = {k: {"psnr": float(np.mean(v["psnr"])), "ssim": float(np.mean(v["ssim"]))}
+               for k, v in res.items()}
+    return {"mean": summary, "frames": len(samples)}, outs
+
+
+def flicker(outputs: list, gts: list) -> float:
+    """Mean |(O_t − O_{t−1}) − (G_t − G_{t−1})| over consecutive frames."""
+    e = [np.abs((outputs[t] - outputs[t - 1]) - (gts[t] - gts[t - 1])).mean()
+         for t in range(1, len(outputs))]
+    return float(np.mean(e)) if e else float("nan")
+
+
+def main(argv=None) -> int:
+    import torch
+
+    from ..nn.data import (StandInRenderer, low_res_camera, make_sample, render_low_res,
+                           sequence_pairs, split_views)
+    from ..nn.infer import SuperSampler
+    from ..nn.model import count_parameters, preset
+    from ..nn.train import TrainOptions, cpu_threads, resolve_device, torch_threads, train
+
+    ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.dsrnet", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", choices=("tiny", "mirror_room"), default="mirror_room")
+    ap.add_argument("--folder", help="a synthetic scene folder (overrides --scene)")
+    ap.add_argument("--workspace", help="a workspace after view_mesh (+ reflection) of a synthetic "
+                    "input: use the real leave-one-out renders of issue #7 instead of the stand-in")
+    ap.add_argument("--preset", choices=("cpu", "paper"), default="cpu")
+    ap.add_argument("--steps", type=int, default=1200)
+    ap.add_argument("--time-budget", type=float, default=0.0, help="training budget, s (0 = none)")
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--crop", type=int, default=48)
+    ap.add_argument("--batch", type=int, default=4)
+    ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu")
+    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--no-ablation", action="store_true", help="skip the W/O MVR training")
+    ap.add_argument("--sequence", type=int, default=12, help="dense held-out frames (0 = none)")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--infer-size", default="640x480", help="output size of the speed test")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="bench_dsrnet.json")
+    args = ap.parse_args(argv)
+    if args.steps < 1 or args.repeats < 1 or args.sequence < 0:
+        print("bench.dsrnet: --steps/--repeats must be >= 1, --sequence >= 0", file=sys.stderr)
+        return 2
+    device = resolve_device(args.device)
+    t0 = time.perf_counter()
+    if args.workspace:
+        from ..io.images import read_image
+        from ..nn.data import IBRRenderer
+        from ..stages.common import registered_cameras
+        from ..workspace import Workspace
+        ws = Workspace(args.workspace)
+        folder = ws.input_root
+        renderer = IBRRenderer(ws)
+        scene = ws.scene()
+        cams = registered_cameras(ws)
+        names = [n for n in scene.names if n in cams]
+        gt_of = {n: read_image(ws.path(scene.view(n).image)) for n in names}
+        renderer.gt_image = gt_of.__getitem__
+        renderer.extra = {}
+    else:
+        folder = _scene_folder(args)
+        renderer = StandInRenderer(folder, seed=args.seed)
+        cams = renderer.cameras()
+        names = list(cams)
+    scale = 2
+    frames = render_low_res(names, cams, renderer, scale)
+    train_names, val_names = split_views(names)
+    gt = {n: renderer.gt_image(n) for n in names}
+    tr = [make_sample(c, p, frames, gt[c]) for c, p in sequence_pairs(train_names, train_names)]
+    va = [make_sample(c, p, frames, gt[c]) for c, p in sequence_pairs(names, val_names)
+          if p not in val_names]
+    full_res = {n: renderer(n, cams[n])[0] for n in val_names}
+    report = {"scene": str(folder), "renderer": "ibr" if args.workspace else "standin", "preset": args.preset,
+              "device": str(device), "train_pairs": len(tr), "val_views": val_names,
+              "threads": cpu_threads(args.threads) if device.type == "cpu" else None,
+              "data_seconds": time.perf_counter() - t0}
+    opts = TrainOptions(steps=args.steps, time_budget_s=args.time_budget, batch=args.batch,
+                        crop=args.crop, lr=args.lr, seed=args.seed, device=str(device),
+                        threads=args.threads, checkpoint_every=max(args.steps // 6, 1),
+                        progress=False)
+    models, trainings = {}, {}
+    variants = [("dsrnet", True)] + ([] if args.no_ablation else [("dsrnet_no_mvr", False)])
+    for key, mvr in variants:
+        cfg = preset(args.preset, use_mvr=mvr)
+        r = train(cfg, tr, va, opts)
+        models[key] = r.model
+        trainings[key] = {"steps": r.steps, "seconds": r.seconds,
+                          "s_per_step": r.seconds / max(r.steps - r.resumed_from, 1),
+                          "stopped_by_budget": r.stopped_by_budget,
+                          "parameters": count_parameters(r.model),
+                          "val_curve": list(zip(r.history["val_step"], r.history["val_psnr"]))}
+        print(f"trained {key}: {r.steps} steps in {r.seconds:.0f} s", flush=True)
+    report["training"] = trainings
+    with torch_threads(cpu_threads(args.threads)):
+        val_res, _ = evaluate_methods(va, models, full_res, device, scale)
+        report["heldout_views"] = val_res
+        if args.sequence:
+            seq = dense_sequence(folder, args.sequence)
+            sframes, sgt = {}, {}
+            for name, cam, img, depth in seq:
+                renderer.extra[name] = (img, depth)  # GT for the stand-in; unused by the IBR one
+                cams[name] = cam
+                sgt[name] = img
+            sframes = render_low_res([s[0] for s in seq], cams, renderer, scale)
+            full = {s[0]: renderer(s[0], cams[s[0]])[0] for s in seq}
+            order = [s[0] for s in seq]
+            samples = [make_sample(order[i], order[max(i - 1, 0)], sframes, sgt[order[i]])
+                       for i in range(len(order))]
+            seq_res, outs = evaluate_methods(samples, models, full, device, scale)
+            gts = [sgt[n] for n in order]
+            seq_res["flicker"] = {k: flicker(v, gts) for k, v in outs.items()}
+            report["sequence"] = seq_res
+        # inference speed at --infer-size output (random content: speed only)
+        W, H = (int(x) for x in args.infer_size.lower().split("x"))
+        sampler = SuperSampler(models["dsrnet"].to(device), device)
+        cam_lr = low_res_camera(list(cams.values())[0].resized(W, H), scale)
+        rng = np.random.default_rng(0)
+        col = rng.random((cam_lr.height, cam_lr.width, 3), dtype=np.float32)
+        dep = np.full((cam_lr.height, cam_lr.width), 2.0, np.float32)
+        ms = []
+        for i in range(args.repeats + 1):
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            t = time.perf_counter()
+            sampler(col, dep, cam_lr)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            if i:  # the first call warms up
+                ms.append((time.perf_counter() - t) * 1000)
+        report["inference_ms"] = {"output": f"{W}x{H}", "median": statistics.median(ms),
+                                  "runs": ms}
+    text = json.dumps(report, indent=1)
+    Path(args.out).write_text(text)
+    print(_summary(report))
+    print(f"written {args.out}")
+    return 0
+
+
+def _summary(r: dict) -> str:
+    lines = [f"DSRNet bench on {r['scene']} ({r['preset']}, {r['device']})"]
+    for key, t in r["training"].items():
+        lines.append(f"  train {key}: {t['steps']} steps, {t['seconds']:.0f} s "
+                     f"({t['s_per_step']:.3f} s/step), {t['parameters']} parameters")
+    for part in ("heldout_views", "sequence"):
+        if part in r:
+            lines.append(f"  {part} ({r[part]['frames']} frames): " + ", ".join(
+                f"{k} {v['psnr']:.2f} dB / {v['ssim']:.4f}" for k, v in r[part]["mean"].items()))
+    if "sequence" in r:
+        lines.append("  flicker: " + ", ".join(f"{k} {v:.4f}"
+                                                for k, v in r["sequence"]["flicker"].items()))
+    lines.append(f"  inference at {r['inference_ms']['output']}: "
+                 f"{r['inference_ms']['median']:.0f} ms (median)")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

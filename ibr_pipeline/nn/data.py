@@ -1,0 +1,259 @@
+"""DSRNet training data (Xu et al. §5.2, §6): leave-one-out low-resolution renders of the capture
+views paired with the captured full-resolution images; consecutive capture views give the previous
+frame; 90 % / 10 % split, the held-out views are never trained on (neither as target nor as input).
+
+The low-resolution renderer is pluggable: any callable `renderer(name, camera_lr) -> (color (h,w,3)
+float32 linear, depth (h,w) float32, 0 = hole)` that renders the capture view `name` *without using
+that view* at the given (low-resolution) camera.
+* `IBRRenderer(ws)`: the real one, `ibr_pipeline.render.ibr.IBRModel` (issue #7) with
+  `exclude=(name,)`.
+* `StandInRenderer(folder)`: a STAND-IN for tests and benchmarks of a synthetic scene while the
+  real renderer is unavailable: the ground-truth image with IBR-like artefacts (sub-pixel
+  misalignment as a smooth random displacement, blending blur, holes at depth discontinuities),
+  area-downsampled to the camera size, and the ground-truth depth. It is not an IBR render: it has
+  no ghosting in reflections and no seams between source views.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from ..scene import Camera, cameras_from_json
+from .warp import depth_motion
+
+Renderer = Callable[[str, Camera], tuple]
+
+
+@dataclass
+class LowRes:
+    """A low-resolution render: colour (h,w,3) float32, depth (h,w) float32 (0 = hole), camera."""
+
+    color: np.ndarray
+    depth: np.ndarray
+    camera: Camera
+
+    def __post_init__(self) -> None:
+        h, w = self.camera.height, self.camera.width
+        self.color = np.asarray(self.color, dtype=np.float32)
+        self.depth = np.asarray(self.depth, dtype=np.float32)
+        if self.color.shape != (h, w, 3) or self.depth.shape != (h, w):
+            raise ValueError(f"render must be colour ({h}, {w}, 3) and depth ({h}, {w}) for a "
+                             f"{w}x{h} camera, got {self.color.shape} and {self.depth.shape}")
+        if not (np.all(np.isfinite(self.color)) and np.all(np.isfinite(self.depth))):
+            raise InputError("low-resolution render contains NaN or infinite values")
+
+
+@dataclass
+class Sample:
+    """One training/evaluation pair: current + previous low-res frames, M_d, full-res target."""
+
+    name: str
+    prev_name: str
+    cur: LowRes
+    prev: LowRes
+    flow: np.ndarray  # (h, w, 2) M_d at the current frame's pixels
+    target: np.ndarray  # (H, W, 3) full resolution, H = scale*h
+
+
+def low_res_camera(camera: Camera, scale: int) -> Camera:
+    if camera.width % scale or camera.height % scale:
+        raise InputError(f"image size {camera.width}x{camera.height} is not divisible by the "
+                         f"supersampling scale {scale}")
+    return camera.resized(camera.width // scale, camera.height // scale)
+
+
+def split_views(names: Sequence[str], val_fraction: float = 0.1) -> tuple[list[str], list[str]]:
+    """(train, val) in the given order: §6 "90% of the captured images as the training dataset and
+    the remaining 10% as the validation set"; the validation views are spread evenly along the
+    sequence so they are not one block of the path."""
+    names = list(names)
+    if len(names) < 3:
+        raise InputError(f"supersample: need at least 3 views to train, got {len(names)}")
+    n_val = min(len(names) - 2, max(1, int(round(len(names) * val_fraction))))
+    val_idx = {int((k + 0.5) * len(names) / n_val) for k in range(n_val)}
+    val = [n for i, n in enumerate(names) if i in val_idx]
+    return [n for i, n in enumerate(names) if i not in val_idx], val
+
+
+def sequence_pairs(order: Sequence[str], targets: Sequence[str]) -> list[tuple[str, str]]:
+    """(current, previous) pairs: each target view with its neighbours in `order` (consecutive
+    capture views; both neighbours are used as 'previous frame', which doubles the pairs)."""
+    order = list(order)
+    pos = {n: i for i, n in enumerate(order)}
+    pairs = []
+    for n in targets:
+        i = pos[n]
+        for j in (i - 1, i + 1):
+            if 0 <= j < len(order):
+                pairs.append((n, order[j]))
+    return pairs
+
+
+def make_sample(name: str, prev_name: str, frames: dict, target: np.ndarray) -> Sample:
+    cur, prev = frames[name], frames[prev_name]
+    flow, _ = depth_motion(cur.depth, cur.camera, prev.camera, prev.depth)
+    h, w = cur.depth.shape
+    if target.ndim != 3 or target.shape[2] != 3 or target.shape[0] % h or target.shape[1] % w:
+        raise ValueError(f"target {target.shape} is not a multiple of the render size {(h, w)}")
+    return Sample(name, prev_name, cur, prev, flow, np.asarray(target, dtype=np.float32))
+
+
+# --- renderers ---------------------------------------------------------------------------------
+def _seed_of(*parts) -> int:
+    return int.from_bytes(hashlib.sha256("/".join(map(str, parts)).encode()).digest()[:8], "little")
+
+
+class StandInRenderer:
+    """STAND-IN low-resolution IBR render of a synthetic scene (see the module docstring).
+
+    folder: a synthetic scene folder (`ibr synth` output, with gt/). Knows capture views
+    (images/NAME + gt/geom), test views (gt/test/...) and fly-through frames (gt/flythrough/images;
+    depth by ray casting gt/mesh.ply). Artefacts are seeded by (seed, view name): deterministic."""
+
+    def __init__(self, folder: Path | str, seed: int = 0, shift_px: float = 0.3,
+                 blur_sigma: float = 0.7, hole_prob: float = 0.25):
+        self.folder = Path(folder)
+        if not (self.folder / "gt").is_dir():
+            raise InputError(f"{self.folder}: not a synthetic scene (no gt/ folder)")
+        self.seed, self.shift_px, self.blur_sigma, self.hole_prob = seed, shift_px, blur_sigma, hole_prob
+        self._mesh_scene = None
+        self.extra: dict = {}  # name -> (image (H,W,3), depth (H,W)) of frames traced elsewhere
+
+    def cameras(self, which: str = "capture") -> dict[str, Camera]:
+        f = {"capture": "cameras.json", "test": "gt/test_cameras.json",
+             "flythrough": "gt/flythrough_cameras.json"}[which]
+        return cameras_from_json(self.folder / f)
+
+    def gt_image(self, name: str) -> np.ndarray:
+        from ..io.images import read_image
+        if name in self.extra:
+            return self.extra[name][0]
+        return read_image(self._image_path(name))
+
+    def _image_path(self, name: str) -> Path:
+        if name.startswith("test_"):
+            return self.folder / "gt/test/images" / name
+        if name.startswith("fly_"):
+            return self.folder / "gt/flythrough/images" / name
+        return self.folder / "images" / name
+
+    def gt_depth(self, name: str, camera: Camera) -> np.ndarray:
+        """Full-resolution z-depth of a view (gt/geom npz, else ray cast of gt/mesh.ply)."""
+        if name in self.extra:
+            return self.extra[name][1]
+        stem = Path(name).stem
+        geom = (self.folder / "gt/test/geom" / f"{stem}.npz" if name.startswith("test_")
+                else self.folder / "gt/geom" / f"{stem}.npz")
+        if geom.is_file():
+            with np.load(geom) as z:
+                return z["depth"].astype(np.float32)
+        from ..io.mesh import read_ply
+        from ..render.raycast import build_scene, camera_rays, cast
+        if self._mesh_scene is None:
+            m = read_ply(self.folder / "gt/mesh.ply")
+            self._mesh_scene = build_scene(m.vertices, m.faces)
+        o, d = camera_rays(camera)
+        t = cast(self._mesh_scene, o, d)["t_hit"]
+        z = t * (d @ camera.viewing_direction)
+        return np.where(np.isfinite(z), z, 0).reshape(camera.height, camera.width).astype(np.float32)
+
+    def __call__(self, name: str, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        import cv2
+
+        gt = self.gt_image(name)
+        H, W = gt.shape[:2]
+        full_cam = camera.resized(W, H)
+        depth_full = self.gt_depth(name, full_cam)
+        rng = np.random.default_rng(_seed_of(self.seed, name, camera.width))
+        # misalignment: a smooth random displacement field (imprecise geometry / blending seams)
+        coarse = rng.normal(0.0, self.shift_px, size=(3, 4, 2)).astype(np.float32)
+        disp = cv2.resize(coarse, (W, H), interpolation=cv2.INTER_CUBIC)
+        u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+        img = cv2.remap(gt, u + disp[..., 0], v + disp[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REFLECT)
+        dep = cv2.remap(depth_full, u + disp[..., 0], v + disp[..., 1], cv2.INTER_NEAREST,
+                        borderMode=cv2.BORDER_REFLECT)
+        if self.blur_sigma > 0:  # blending of several source views blurs
+            img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma)
+        w, h = camera.width, camera.height
+        color = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        fy, fx = H // h, W // w
+        depth = dep[:h * fy, :w * fx].reshape(h, fy, w, fx).min(axis=(1, 3))  # nearest surface
+        # holes: small blobs at depth discontinuities, colour and depth 0 (disocclusions)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            jump = np.zeros((h, w), bool)
+            jump[:, 1:] |= np.abs(np.diff(depth, axis=1)) > 0.05 * depth[:, 1:]
+            jump[1:] |= np.abs(np.diff(depth, axis=0)) > 0.05 * depth[1:]
+        seeds = jump & (rng.random((h, w)) < self.hole_prob * 0.1)
+        holes = cv2.dilate(seeds.astype(np.uint8), np.ones((2, 2), np.uint8)) > 0
+        color[holes] = 0.0
+        depth = np.where(holes, 0.0, depth)
+        return color.astype(np.float32), depth.astype(np.float32)
+
+
+class IBRRenderer:
+    """The real low-resolution renderer: leave-one-out renders with issue #7's IBRModel."""
+
+    def __init__(self, ws, layers: bool = True):
+        try:
+            from ..render.ibr import IBRModel
+        except ImportError as e:
+            raise InputError("supersample: the IBR renderer (ibr_pipeline.render.ibr, stage "
+                             f"render_views, issue #7) is not available: {e}") from None
+        self.model = IBRModel.load(ws, layers=layers)
+
+    def __call__(self, name: str, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        frame = self.model.render(camera, exclude=(name,))
+        return np.asarray(frame.color, np.float32), np.asarray(frame.depth, np.float32)
+
+
+def render_low_res(names: Sequence[str], cameras: dict[str, Camera], renderer: Renderer,
+                   scale: int, progress: bool = False, cache: Callable | None = None) -> dict:
+    """{name: LowRes} for every name, rendered at 1/scale resolution with `renderer`.
+
+    cache: optional (name, compute) -> (color, depth) memoiser (the stage keeps renders on disk so
+    an interrupted run does not render again)."""
+    from tqdm import tqdm
+
+    out = {}
+    for n in tqdm(list(names), desc="supersample: low-res renders", unit="view", disable=not progress,
+                  leave=False):
+        cam = low_res_camera(cameras[n], scale)
+        compute = (lambda n=n, cam=cam: renderer(n, cam))
+        color, depth = cache(n, compute) if cache is not None else compute()
+        out[n] = LowRes(color, depth, cam)
+    return out
+
+
+# --- batches -----------------------------------------------------------------------------------
+def to_tensors(samples: Sequence[Sample], crop: int | None = None, rng=None, flip: bool = False):
+    """Stack samples into the DSRNet input tensors (optionally a random crop of `crop` low-res
+    pixels and a random horizontal flip per sample). Returns a dict of torch tensors."""
+    import torch
+
+    keys = ("cur", "depth", "prev", "depth_prev", "flow", "target")
+    out = {k: [] for k in keys}
+    for s in samples:
+        h, w = s.cur.depth.shape
+        f = s.target.shape[0] // h
+        arrs = {"cur": s.cur.color, "depth": s.cur.depth[..., None], "prev": s.prev.color,
+                "depth_prev": s.prev.depth[..., None], "flow": s.flow}
+        tgt = s.target
+        if crop is not None and crop < min(h, w):
+            y = int(rng.integers(0, h - crop + 1))
+            x = int(rng.integers(0, w - crop + 1))
+            arrs = {k: a[y:y + crop, x:x + crop] for k, a in arrs.items()}
+            tgt = tgt[y * f:(y + crop) * f, x * f:(x + crop) * f]
+        if flip and rng is not None and rng.random() < 0.5:
+            arrs = {k: a[:, ::-1] for k, a in arrs.items()}
+            arrs["flow"] = arrs["flow"] * np.array([-1.0, 1.0], np.float32)  # u points the other way
+            tgt = tgt[:, ::-1]
+        for k, a in arrs.items():
+            out[k].append(np.ascontiguousarray(a.transpose(2, 0, 1)))
+        out["target"].append(np.ascontiguousarray(tgt.transpose(2, 0, 1)))
+    return {k: torch.from_numpy(np.stack(v).astype(np.float32)) for k, v in out.items()}

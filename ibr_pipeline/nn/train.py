@@ -1,0 +1,280 @@
+"""DSRNet training loop (Xu et al. §5.2.2): Adam on random crops, progress bar, checkpoints, resume,
+time budget, loss-curve PNG, deterministic for a seed.
+
+Determinism: the weights are initialised from `torch.manual_seed(seed)` and the crops of step k
+come from `numpy.random.default_rng([seed, k])`, so a run is a pure function of (data, options,
+number of steps) and a resumed run continues exactly where the checkpoint left it (Adam's state is
+in the checkpoint). A run cut short by the time budget is deterministic up to the number of steps
+it reached (recorded in train.json).
+
+Files: the checkpoint holds only tensors and plain values (`torch.save` of state dicts) and is read
+with `torch.load(weights_only=True)`.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..workspace import atomic_path
+from .data import Sample, to_tensors
+from .losses import PERCEPTUAL_WEIGHT, build_features, image_loss, warp_loss
+from .model import DSRNet, DSRNetConfig
+
+log = logging.getLogger("ibr_pipeline.nn.train")
+MODEL_FORMAT = "ibr_pipeline.dsrnet/1"
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    steps: int = 1200
+    time_budget_s: float = 120.0  # stop (and save) when exceeded; 0 = no budget
+    batch: int = 4
+    crop: int = 48  # low-resolution crop side
+    lr: float = 1e-3
+    perceptual_weight: float = PERCEPTUAL_WEIGHT  # §5.2.2: w = 0.1
+    l1_weight: float = 0.0  # optional L1 image term (not in Eq. of §5.2.2; Table 4 mentions L1)
+    warp_weight: float = 1.0  # weight of L_warp (the paper gives none; see docs/DSRNET.md)
+    vgg_weights: str = ""  # user-supplied VGG-16 features state dict; "" = fixed filter bank
+    seed: int = 0
+    checkpoint_every: int = 100
+    device: str = "cpu"
+    threads: int = 0  # torch CPU threads; 0 = auto (see `cpu_threads`)
+    flip: bool = True
+    progress: bool = True
+
+
+@dataclass
+class TrainResult:
+    model: DSRNet
+    steps: int
+    stopped_by_budget: bool
+    seconds: float
+    history: dict = field(default_factory=dict)
+    resumed_from: int = 0
+
+
+# options that do not change what a step computes: a resumed run may differ in them
+_RUN_ONLY = ("time_budget_s", "checkpoint_every", "device", "threads", "progress")
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        from ..errors import InputError
+        raise InputError("supersample.device: cuda requested but torch sees no CUDA device")
+    return torch.device(name)
+
+
+def cpu_threads(requested: int = 0) -> int:
+    """CPU threads for torch. 0 = auto: all cores, but 1 when the machine is already busy (load
+    average >= cores): OpenMP threads spin-wait and a 2-thread step was measured 7x slower than a
+    1-thread step on a loaded 2-core machine (docs/DSRNET.md)."""
+    import os
+
+    if requested > 0:
+        return requested
+    cores = os.cpu_count() or 1
+    try:
+        busy = os.getloadavg()[0] >= cores
+    except OSError:
+        busy = False
+    return 1 if busy else cores
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    old = torch.get_num_threads()
+    torch.set_num_threads(max(1, n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _batch(samples: Sequence[Sample], opts: TrainOptions, step: int, device) -> dict:
+    rng = np.random.default_rng([opts.seed, step])
+    idx = rng.integers(0, len(samples), size=opts.batch)
+    b = to_tensors([samples[i] for i in idx], crop=opts.crop, rng=rng, flip=opts.flip)
+    return {k: v.to(device).contiguous(memory_format=torch.channels_last) for k, v in b.items()}
+
+
+def _forward(model: DSRNet, b: dict) -> dict:
+    return model(b["cur"], b["depth"], b["prev"], b["depth_prev"], b["flow"])
+
+
+def total_loss(model: DSRNet, features, b: dict, opts: TrainOptions) -> tuple:
+    out = _forward(model, b)
+    loss = image_loss(features, out["image"], b["target"], opts.perceptual_weight,
+                      opts.l1_weight)  # §5.2.2
+    lw = torch.zeros((), device=loss.device)
+    if model.mvr is not None and opts.warp_weight > 0:  # L_warp trains the MVR module
+        lw = warp_loss(b["cur"], out["prev_warped"], out["inside"])
+    return loss + opts.warp_weight * lw, loss.detach(), lw.detach()
+
+
+@torch.no_grad()
+def evaluate(model: DSRNet, samples: Sequence[Sample], device) -> dict:
+    """Mean PSNR/SSIM (ibr_pipeline.metrics) of DSRNet, bilinear and bicubic upsampling."""
+    from .. import metrics
+    from .infer import upsample
+
+    if not samples:
+        return {}
+    model.eval()
+    acc = {k: [] for k in ("psnr", "ssim", "psnr_bilinear", "ssim_bilinear", "psnr_bicubic",
+                           "ssim_bicubic")}
+    for s in samples:
+        b = {k: v.to(device) for k, v in to_tensors([s]).items()}
+        y = _forward(model, b)["image"].clamp(0, 1)[0].permute(1, 2, 0).cpu().numpy()
+        f = s.target.shape[0] // s.cur.color.shape[0]
+        for suffix, img in (("", y), ("_bilinear", upsample(s.cur.color, f, "bilinear")),
+                            ("_bicubic", upsample(s.cur.color, f, "bicubic"))):
+            acc["psnr" + suffix].append(metrics.psnr(s.target, img))
+            acc["ssim" + suffix].append(metrics.ssim(s.target, img))
+    model.train()
+    return {k: float(np.mean(v)) for k, v in acc.items()}
+
+
+def save_model(path: Path, model: DSRNet, extra: dict | None = None) -> None:
+    state = {"format": MODEL_FORMAT, "config": model.config.to_dict(),
+             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
+    state.update(extra or {})
+    with atomic_path(Path(path)) as tmp:
+        torch.save(state, tmp)
+
+
+def load_model(path: Path, device="cpu") -> DSRNet:
+    from ..errors import InputError
+    try:
+        state = torch.load(Path(path), map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no trained DSRNet (run `ibr supersample` first)") from None
+    except Exception as e:  # noqa: BLE001  (corrupt/foreign file: one line for the user)
+        raise InputError(f"{path}: cannot read DSRNet weights ({type(e).__name__}: {e})") from None
+    if not isinstance(state, dict) or state.get("format") != MODEL_FORMAT:
+        raise InputError(f"{path}: not a DSRNet model file ({MODEL_FORMAT})")
+    model = DSRNet(DSRNetConfig.from_dict(state["config"]))
+    model.load_state_dict(state["state_dict"])
+    return model.to(device).eval()
+
+
+def _save_checkpoint(path: Path, model, optim, step: int, history: dict, fingerprint: str) -> None:
+    state = {"model": model.state_dict(), "optim": optim.state_dict(), "step": step,
+             "history": history, "fingerprint": fingerprint}
+    with atomic_path(Path(path)) as tmp:
+        torch.save(state, tmp)
+
+
+def _lr_at(opts: TrainOptions, step: int) -> float:
+    return opts.lr * 0.5 * (1 + math.cos(math.pi * min(step / max(opts.steps, 1), 1.0)))  # cosine
+
+
+def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Sequence[Sample],
+          opts: TrainOptions, checkpoint: Path | None = None, fingerprint: str = "") -> TrainResult:
+    """Train a DSRNet; resumes from `checkpoint` when it exists with the same `fingerprint`
+    (the data's, given by the caller) and the same options (those that change the result)."""
+    if not train_samples:
+        raise ValueError("train: no training samples")
+    device = resolve_device(opts.device)
+    torch.manual_seed(opts.seed)
+    model = DSRNet(config).to(device).train().to(memory_format=torch.channels_last)
+    features = build_features(opts.vgg_weights).to(device)
+    optim = torch.optim.Adam(model.parameters(), lr=opts.lr)
+    same = {k: v for k, v in asdict(opts).items() if k not in _RUN_ONLY}
+    fingerprint = fingerprint + "|" + repr(sorted(same.items())) + repr(config)
+    history = {"step": [], "loss": [], "image_loss": [], "warp_loss": [], "val_step": [],
+               "val_psnr": [], "val_psnr_bilinear": []}
+    start = 0
+    if checkpoint is not None and Path(checkpoint).is_file():
+        try:
+            ck = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        except Exception as e:  # noqa: BLE001
+            log.warning("supersample: ignoring unreadable checkpoint %s (%s)", checkpoint, e)
+            ck = None
+        if ck is not None and ck.get("fingerprint") == fingerprint:
+            model.load_state_dict(ck["model"])
+            optim.load_state_dict(ck["optim"])
+            start, history = int(ck["step"]), ck["history"]
+            log.info("supersample: resuming training at step %d from %s", start, checkpoint)
+    with torch_threads(cpu_threads(opts.threads)):
+        return _loop(model, features, optim, train_samples, val_samples, opts, checkpoint,
+                     fingerprint, history, start, device)
+
+
+def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, fingerprint,
+          history, start, device) -> TrainResult:
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    step, stopped = start, False
+    bar = tqdm(total=opts.steps, initial=start, desc="supersample: training DSRNet", unit="step",
+               disable=not opts.progress, leave=False)
+    while step < opts.steps:
+        if opts.time_budget_s > 0 and time.perf_counter() - t0 > opts.time_budget_s:
+            stopped = True
+            break
+        for g in optim.param_groups:
+            g["lr"] = _lr_at(opts, step)
+        b = _batch(train_samples, opts, step, device)
+        loss, li, lw = total_loss(model, features, b, opts)
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+        step += 1
+        history["step"].append(step)
+        history["loss"].append(float(loss.detach()))
+        history["image_loss"].append(float(li))
+        history["warp_loss"].append(float(lw))
+        bar.update(1)
+        bar.set_postfix(loss=f"{history['loss'][-1]:.4f}")
+        if step % opts.checkpoint_every == 0 or step == opts.steps:
+            if val_samples:
+                ev = evaluate(model, val_samples, device)
+                history["val_step"].append(step)
+                history["val_psnr"].append(ev["psnr"])
+                history["val_psnr_bilinear"].append(ev["psnr_bilinear"])
+            if checkpoint is not None:
+                _save_checkpoint(checkpoint, model, optim, step, history, fingerprint)
+    bar.close()
+    model.eval()
+    return TrainResult(model, step, stopped, time.perf_counter() - t0, history, start)
+
+
+def plot_losses(history: dict, path: Path, title: str = "DSRNet training") -> None:
+    """Loss curve (and validation PSNR) as a PNG, written atomically."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
+    steps = np.asarray(history.get("step", []))
+    loss = np.asarray(history.get("loss", []))
+    if len(loss):
+        ax.plot(steps, loss, color="0.75", lw=0.8, label="loss (per step)")
+        k = max(1, len(loss) // 50)
+        smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
+        ax.plot(steps[k - 1:], smooth, color="C0", lw=1.5, label=f"loss (mean of {k})")
+    ax.set_xlabel("step")
+    ax.set_ylabel("1 − SSIM + w·filters + L_warp")
+    ax.set_title(title)
+    if history.get("val_psnr"):
+        ax2 = ax.twinx()
+        ax2.plot(history["val_step"], history["val_psnr"], "o-", color="C3", label="val PSNR")
+        ax2.plot(history["val_step"], history["val_psnr_bilinear"], "--", color="C2",
+                 label="val PSNR bilinear")
+        ax2.set_ylabel("PSNR (dB)")
+        ax2.legend(loc="upper center", fontsize=8)
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    with atomic_path(Path(path)) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
