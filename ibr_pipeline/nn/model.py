@@ -145,10 +145,19 @@ class UNet(nn.Module):
 
 
 def normalise_depth(depth, ref):
-    """Depth divided by the mean valid depth of `ref` per sample (scale-free: SfM units work)."""
-    valid = (ref > 0).to(ref.dtype)
-    mean = (ref * valid).sum(dim=(1, 2, 3), keepdim=True) / valid.sum(dim=(1, 2, 3),
-                                                                       keepdim=True).clamp(min=1)
+    """Depth divided by the mean valid depth of `ref` per sample (scale-free: SfM units work).
+
+    A sample whose `ref` has no valid depth (a crop that is all hole) falls back to the mean of
+    `depth` itself, then to 1: dividing by ~0 there fed values of ~1e6 to the network and made
+    single training steps explode on real renders."""
+    def mean_valid(x):
+        valid = (x > 0).to(x.dtype)
+        n = valid.sum(dim=(1, 2, 3), keepdim=True)
+        return (x * valid).sum(dim=(1, 2, 3), keepdim=True) / n.clamp(min=1), n > 0
+
+    m_ref, ok_ref = mean_valid(ref)
+    m_own, ok_own = mean_valid(depth)
+    mean = torch.where(ok_ref, m_ref, torch.where(ok_own, m_own, torch.ones_like(m_ref)))
     return depth / mean.clamp(min=1e-6)
 
 

@@ -56,7 +56,10 @@ def depth_motion(depth_cur: np.ndarray, cam_cur: Camera, cam_prev: Camera,
         with np.errstate(invalid="ignore", divide="ignore"):
             agree = np.abs(target - z_prev) <= occlusion_tol * np.maximum(z_prev, 1e-9)
         valid &= (target > 0) & agree
-    flow = np.where(has[..., None] & np.isfinite(flow), flow, 0.0)
+    # Only motions that land in the previous image are kept; elsewhere M_d = 0 (the MVR input and
+    # the warp stay bounded: a point just in front of the previous camera projects millions of
+    # pixels away, and such values made single training steps explode on real IBR renders).
+    flow = np.where(valid[..., None], flow, 0.0)
     return flow.astype(np.float32), valid
 
 

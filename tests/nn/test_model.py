@@ -57,3 +57,16 @@ def test_bad_input_shape():
     x[1] = torch.rand(2, 2, 30, 44)
     with pytest.raises(ValueError, match="depth must be"):
         net(*x)
+
+
+def test_depth_normalisation_is_bounded_when_the_reference_is_all_hole():
+    import torch
+
+    from ibr_pipeline.nn.model import normalise_depth
+    ref = torch.zeros(2, 1, 8, 8)
+    ref[1] = 2.0
+    depth = torch.full((2, 1, 8, 8), 3.0)
+    out = normalise_depth(depth, ref)
+    assert torch.allclose(out[0], torch.ones(1, 8, 8))  # own mean when the reference has no depth
+    assert torch.allclose(out[1], torch.full((1, 8, 8), 1.5))
+    assert float(normalise_depth(torch.zeros(1, 1, 4, 4), torch.zeros(1, 1, 4, 4)).abs().max()) == 0
