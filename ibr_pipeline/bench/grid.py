@@ -198,6 +198,12 @@ def _fallbacks(ws: Path) -> list[str]:
         d = json.loads(lj.read_text())
         if d.get("fallback"):
             notes.append(f"reflection {lj.parent.name}: {d['fallback']}")
+        for x in d.get("discarded") or []:
+            notes.append(f"reflection {lj.parent.name}: {x.get('name')} single-layer "
+                         f"({x.get('discarded', 'discarded')})")
+    nn = ws / "nn" / "train.json"
+    if nn.is_file() and json.loads(nn.read_text()).get("fallback"):
+        notes.append(f"supersample: {json.loads(nn.read_text())['fallback']}")
     return notes
 
 

@@ -72,8 +72,10 @@ def split_views(names: Sequence[str], val_fraction: float = 0.1) -> tuple[list[s
     the remaining 10% as the validation set"; the validation views are spread evenly along the
     sequence so they are not one block of the path."""
     names = list(names)
-    if len(names) < 3:
-        raise InputError(f"supersample: need at least 3 views to train, got {len(names)}")
+    if len(names) < 2:
+        raise InputError(f"supersample: need at least 2 views to train, got {len(names)}")
+    if len(names) < 3:  # fallback (issue #10: runs complete): train on both, nothing held out
+        return names, []
     n_val = min(len(names) - 2, max(1, int(round(len(names) * val_fraction))))
     val_idx = {int((k + 0.5) * len(names) / n_val) for k in range(n_val)}
     val = [n for i, n in enumerate(names) if i in val_idx]

@@ -192,6 +192,10 @@ def run(ctx: StageContext) -> None:
         "torch_threads": cpu_threads(cfg.threads) if device.type == "cpu" else None,
         "final_loss": float(np.mean(result.history["loss"][-20:])) if result.history["loss"] else None,
     }
+    if not val_names:
+        report["fallback"] = (f"only {len(names)} registered views: all trained on, no held-out "
+                              "validation (needs >= 3)")
+        log.warning("supersample: %s", report["fallback"])
     if val:
         log.info("supersample: %d steps in %.0f s; held-out PSNR %.2f dB (bilinear %.2f, bicubic "
                  "%.2f)", result.steps, result.seconds, val["psnr"], val["psnr_bilinear"],
