@@ -6,7 +6,7 @@
 * rgbd: poses given, TSDF fusion of the depth frames with reflectors.json: F-score at 5 cm vs
   gt/mesh.ply (mirror-world points excluded from precision and reported separately), fusion ms/frame.
 * mvs: poses given, no depth (dense=mvs): the same F-score, MVS s/view.
-* sfm: forced SfM (sequential matching), Sim(3)-aligned pose errors, registration rate, s/image.
+* sfm: forced SfM (--matching, default auto), Sim(3)-aligned pose errors, registration rate, s/image.
 * mvs_speed: one plane sweep at the scene's full image size with 4 sources, median of repeats.
 `mirror_room` is generated at 640x480 with --views capture views (default 30, ~1 min).
 """
@@ -23,15 +23,17 @@ from pathlib import Path
 import numpy as np
 
 
-def _scene(name: str, views: int, work: Path) -> Path:
+def _scene(name: str, views: int, work: Path, size: tuple[int, int] | None = None) -> Path:
     if name == "sample":
         return Path(__file__).resolve().parents[2] / "sample_data" / "mirror_room"
     if name not in ("tiny", "mirror_room"):
         return Path(name)
     from ..synthetic.generate import SynthOptions, generate
     out = work / name
-    opts = SynthOptions(name, seed=0, views=None if name == "tiny" else views, test_views=1,
-                        flythrough=2, jobs=1, progress=False)
+    w, h = size or (None, None)
+    opts = SynthOptions(name, seed=0, width=w, height=h, views=None if name == "tiny" else views,
+                        test_views=1, flythrough=2, gt_layers=False, raytree_pairs=0, jobs=1,
+                        progress=False)
     generate(opts, out)
     return out
 
@@ -93,6 +95,9 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="tiny", help="tiny, mirror_room (generated), sample, or a folder")
     ap.add_argument("--views", type=int, default=30, help="capture views when generating mirror_room")
+    ap.add_argument("--size", default=None, help="WxH when generating mirror_room (default 640x480)")
+    ap.add_argument("--matching", default="auto", choices=("auto", "sequential", "exhaustive"),
+                    help="global_mesh.matching for the sfm part")
     ap.add_argument("--parts", default="rgbd,mvs,sfm,mvs_speed")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
@@ -104,7 +109,8 @@ def main(argv=None) -> int:
     out: dict = {"scene": args.scene, "machine_note": "2 shared cores unless stated", "results": {}}
     with tempfile.TemporaryDirectory(prefix="bench-gm-") as tmp:
         tmp = Path(tmp)
-        scene = _scene(args.scene, args.views, tmp)
+        size = tuple(int(x) for x in args.size.lower().split("x")) if args.size else None
+        scene = _scene(args.scene, args.views, tmp, size)
         mvs_scale = args.mvs_scale or (1.0 if args.scene == "tiny" else None)
         for part in parts:
             t0 = time.perf_counter()
@@ -121,12 +127,13 @@ def main(argv=None) -> int:
                     sets.append(f"global_mesh.mvs_scale={mvs_scale}")
                 rep = _run_stage(scene, tmp / "mvs", sets)
                 res = {"mvs_s_per_view": rep["timings"]["mvs_s_per_view"],
+                       "mvs_cpu_s_per_view": rep["timings"].get("mvs_cpu_s_per_view"),
                        "mvs_valid_fraction": rep.get("mvs_valid_fraction"), **_fscore(scene, tmp / "mvs")}
             elif part == "sfm":
                 from ..geometry.align import pose_errors
                 from ..scene import cameras_from_json, read_input
                 rep = _run_stage(scene, tmp / "sfm", ["global_mesh.force_sfm=true",
-                                                      "global_mesh.matching=sequential"])
+                                                      f"global_mesh.matching={args.matching}"])
                 truth = {v.name: v.camera for v in read_input(scene).views}
                 est = cameras_from_json(tmp / "sfm" / "global" / "cameras.json")
                 lo, hi = np.array([0, 0, 0]), np.array([5, 4, 2.7])  # room box (docs/SYNTHETIC.md)
@@ -135,6 +142,7 @@ def main(argv=None) -> int:
                 res = {"registered": len(est), "views": len(truth),
                        "registration_rate": len(est) / len(truth),
                        "sfm_s_per_image": rep["timings"]["poses_s"] / len(truth),
+                       "sfm_stats": rep.get("sfm"),
                        "reprojection_error_px": rep["reprojection_error_px"], "alignment": rep.get("alignment"),
                        "pose_errors": err,
                        "center_error_pct_of_room_diagonal": 100 * err["center_m"]["median"] / diag}

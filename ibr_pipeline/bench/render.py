@@ -53,12 +53,8 @@ def accuracy(model, root: Path, with_flip: bool = True) -> dict:
         r["psnr_covered"] = metrics.psnr(ref, f.color, f.covered)
         r["holes"] = float(1 - f.covered.mean())
         rows.append(r)
-    keys = sorted({k for r in rows for k in r})
-    out = {}
-    for k in keys:
-        v = np.array([r.get(k, np.nan) for r in rows], dtype=np.float64)
-        v = v[np.isfinite(v)]
-        out[k] = float(v.mean()) if len(v) else None
+    from ..stages.evaluate import mean_metrics
+    out = mean_metrics(rows)
     out["views"] = len(rows)
     return out
 

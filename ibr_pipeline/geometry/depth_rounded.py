@@ -71,11 +71,8 @@ def canny_edges(image: np.ndarray, thresholds: tuple = (40, 100), blur_sigma: fl
     sqrt-encoded, Gaussian-blurred grey image as `geodesic.colour_edge_map`."""
     import cv2
 
-    img = np.asarray(image, dtype=np.float32)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"image must be (H, W, 3), got {img.shape}")
-    enc = np.sqrt(np.clip(img, 0, 1))
-    if blur_sigma > 0:
-        enc = cv2.GaussianBlur(enc, (0, 0), blur_sigma)
+    from .geodesic import encode_for_edges
+
+    enc = encode_for_edges(image, blur_sigma)
     grey = cv2.cvtColor((enc * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
     return cv2.Canny(grey, *thresholds) > 0

@@ -19,6 +19,20 @@ import numpy as np
 K_NEIGHBOURS = 4  # Xu Eq. 2: the 4 closest neighbours outside the refinement mask
 
 
+def encode_for_edges(image: np.ndarray, blur_sigma: float) -> np.ndarray:
+    """(H, W, 3) float32: sqrt of a linear RGB image in [0, 1] (display-like, so dark regions are
+    not edge-free), Gaussian-blurred by `blur_sigma` px; the input of every colour-edge detector."""
+    import cv2
+
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"image must be (H, W, 3), got {img.shape}")
+    enc = np.sqrt(np.clip(img, 0, 1))
+    if blur_sigma > 0:
+        enc = cv2.GaussianBlur(enc, (0, 0), blur_sigma)
+    return enc
+
+
 def colour_edge_map(image: np.ndarray, strokes: np.ndarray | None = None,
                     blur_sigma: float = 1.0, canny: tuple[int, int] = (40, 100)) -> np.ndarray:
     """(H, W) float32 edge strength in [0, 1] of a linear RGB image (H, W, 3) in [0, 1].
@@ -28,12 +42,7 @@ def colour_edge_map(image: np.ndarray, strokes: np.ndarray | None = None,
     Canny edges (thresholds `canny` on the 8-bit encoded grey image); strokes add 1."""
     import cv2
 
-    img = np.asarray(image, dtype=np.float32)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"image must be (H, W, 3), got {img.shape}")
-    enc = np.sqrt(np.clip(img, 0, 1))
-    if blur_sigma > 0:
-        enc = cv2.GaussianBlur(enc, (0, 0), blur_sigma)
+    enc = encode_for_edges(image, blur_sigma)
     gx = cv2.Sobel(enc, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(enc, cv2.CV_32F, 0, 1, ksize=3)
     mag = np.sqrt(gx * gx + gy * gy).max(axis=2)

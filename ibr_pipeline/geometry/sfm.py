@@ -35,12 +35,19 @@ def _camera_from_image(image) -> Camera:
 
 def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str = "sequential",
             intrinsics: Camera | None = None, overlap: int = 10, threads: int = 1,
-            max_image_size: int = 3200) -> SfMResult:
+            max_image_size: int = 3200, init_min_inliers: int = 50, abs_pose_min_inliers: int = 15,
+            init_min_tri_angle: float = 8.0) -> SfMResult:
     """Run SIFT + matching + incremental mapping on `names` (paths relative to `image_dir`).
 
     intrinsics: one Camera whose K is shared by all images and kept fixed (PINHOLE); None lets
     COLMAP estimate a SIMPLE_PINHOLE focal length per single shared camera. Returns the largest
     reconstruction; work_dir receives database.db and the mapper's models.
+
+    Mapper thresholds are relaxed from COLMAP's defaults (initial pair 100 inliers and 16°,
+    image registration 30 inliers) for sparse or low-resolution captures, whose neighbouring
+    views share few SIFT matches: `init_min_inliers`, `abs_pose_min_inliers`, `init_min_tri_angle`
+    (degrees). Matching is guided (epipolar-constrained second pass), and with known intrinsics
+    neither bundle adjustment nor absolute-pose estimation refines them.
     """
     import pycolmap
 
@@ -72,6 +79,7 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
     mopt = pycolmap.FeatureMatchingOptions()
     mopt.num_threads = threads
     mopt.use_gpu = False
+    mopt.guided_matching = True
     t0 = time.perf_counter()
     if matching == "sequential":
         pairing = pycolmap.SequentialPairingOptions()
@@ -83,10 +91,15 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
     stats["match_s"] = time.perf_counter() - t0
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = threads
+    opts.mapper.init_min_num_inliers = init_min_inliers
+    opts.mapper.abs_pose_min_num_inliers = abs_pose_min_inliers
+    opts.mapper.init_min_tri_angle = init_min_tri_angle
     if intrinsics is not None:
         opts.ba_refine_focal_length = False
         opts.ba_refine_principal_point = False
         opts.ba_refine_extra_params = False
+        opts.mapper.abs_pose_refine_focal_length = False
+        opts.mapper.abs_pose_refine_extra_params = False
     t0 = time.perf_counter()
     models = pycolmap.incremental_mapping(db, image_dir, work_dir / "models", opts)
     stats["map_s"] = time.perf_counter() - t0
@@ -95,7 +108,9 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
                          f"(too little texture or overlap?)")
     rec = max(models.values(), key=lambda r: r.num_reg_images())
     cams = {img.name: _camera_from_image(img) for img in rec.images.values() if img.has_pose}
-    stats.update(registered=len(cams), models=len(models), points=rec.num_points3D(),
+    stats.update(registered=len(cams), models=len(models),
+                 model_sizes=sorted((m.num_reg_images() for m in models.values()), reverse=True),
+                 points=rec.num_points3D(),
                  reprojection_error_px=float(rec.compute_mean_reprojection_error()))
     return SfMResult(cams, rec, stats)
 

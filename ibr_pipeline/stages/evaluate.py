@@ -114,7 +114,8 @@ def _scores(ref, img, mask, with_flip: bool) -> dict:
     return {k: float(v) for k, v in m.items()}
 
 
-def _mean(rows: list[dict]) -> dict:
+def mean_metrics(rows: list[dict]) -> dict:
+    """Per-key mean over rows, ignoring NaN/missing values (None when a key has none)."""
     import numpy as np
     keys = sorted({k for r in rows for k in r})
     out = {}
@@ -182,7 +183,7 @@ def run(ctx: StageContext) -> None:
                     np.concatenate([to_display(p) for p in panel], 1))
     if oracle is not None:
         oracle.release()
-    methods = {k: _mean(v) for k, v in rows.items() if v}
+    methods = {k: mean_metrics(v) for k, v in rows.items() if v}
     summary = {k: v for k, v in methods["ours"].items()}
     for k in ("single", "oracle"):
         for m, v in methods.get(k, {}).items():

@@ -46,10 +46,13 @@ class GlobalMeshConfig(StageConfig):
     reflector_fill: bool = param(True, "replace reflector pixels by the reflector plane (else drop them)")
     mvs_scale: float = param(0.5, "MVS working resolution relative to the images", min=0.05, max=1.0)
     mvs_sources: int = param(4, "MVS source views per reference view", min=1, max=16)
-    mvs_depths: int = param(48, "MVS plane hypotheses (uniform in inverse depth)", min=4, max=512)
+    mvs_depths: int = param(96, "MVS plane hypotheses (uniform in inverse depth)", min=4, max=512)
     mvs_window: int = param(7, "MVS NCC window (odd)", min=3, max=21)
     mvs_max_cost: float = param(0.5, "MVS: reject pixels whose 1 - NCC exceeds this", min=0.0, max=2.0)
-    mvs_min_consistent: int = param(2, "MVS: source depth maps that must agree (geometric filter)", min=0, max=16)
+    mvs_min_consistent: int = param(1, "MVS: source depth maps that must agree (geometric filter)", min=0, max=16)
+    mvs_consistency_tol: float = param(0.02, "MVS geometric filter: relative depth tolerance", min=1e-4, max=0.5)
+    mvs_consistency_px: float = param(1.0, "MVS geometric filter: round-trip reprojection tolerance (px)",
+                                      min=0.1, max=20.0)
     mvs_depth_min: float = param(0.3, "MVS depth range when there are no SfM points", min=1e-3, max=1e4)
     mvs_depth_max: float = param(8.0, "MVS depth range when there are no SfM points", min=1e-3, max=1e4)
     device: str = param("cpu", "torch device for MVS", choices=("cpu", "cuda"))
@@ -186,7 +189,7 @@ def _mvs_depths(ctx, cams, rec, report) -> dict:
         im = read_image(ws.path(scene.view(n).image))
         imgs[n] = cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) if (w, h) != im.shape[1::-1] else im
         wcams[n] = cam.resized(w, h)
-    raw, t0 = {}, time.perf_counter()
+    raw, t0, c0 = {}, time.perf_counter(), time.process_time()
     for n in tqdm(cams, desc="global_mesh: MVS", unit="view", disable=not cfg.progress, leave=False):
         lo, hi = cfg.mvs_depth_min, cfg.mvs_depth_max
         if rec is not None:
@@ -202,12 +205,14 @@ def _mvs_depths(ctx, cams, rec, report) -> dict:
                             max_cost=cfg.mvs_max_cost)
         raw[n] = (r.depth, src)
     report["timings"]["mvs_s_per_view"] = (time.perf_counter() - t0) / max(len(raw), 1)
+    report["timings"]["mvs_cpu_s_per_view"] = (time.process_time() - c0) / max(len(raw), 1)
     out = {}
     for n, (d, src) in raw.items():
         others = [s for s in src if s in raw]
         if cfg.mvs_min_consistent > 0 and others:
             cnt = mvs.geometric_consistency(wcams[n], d, [wcams[s] for s in others],
-                                            [raw[s][0] for s in others], rel_tol=0.01, reproj_px=1.0,
+                                            [raw[s][0] for s in others], rel_tol=cfg.mvs_consistency_tol,
+                                            reproj_px=cfg.mvs_consistency_px,
                                             device=cfg.device)
             d = np.where(cnt >= min(cfg.mvs_min_consistent, len(others)), d, 0).astype(np.float32)
         out[n] = (d, wcams[n])
