@@ -109,10 +109,15 @@ def _reflectors(dst: Path, kind: str, amount: float) -> None:
         for r in d["reflectors"]:
             n = np.array(r["plane"][:3], float)
             axis = np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0, 0])
-            n2 = _rot(axis, amount) @ n
-            centre = np.mean(np.array(r["polygon"], float), axis=0) + amount * n
-            r["plane"] = [*n2.tolist(), float(-n2 @ centre)]
-            r.pop("polygon", None)
+            R = _rot(axis, amount)
+            poly = np.array(r["polygon"], float)
+            centre = poly.mean(axis=0)
+            # the same reflector, shifted by `amount` m along its normal and tilted by `amount` rad
+            # about its centre: a plausible user error, with its outline moved along
+            poly = (poly - centre) @ R.T + centre + amount * n
+            n2 = R @ n
+            r["plane"] = [*n2.tolist(), float(-n2 @ poly.mean(axis=0))]
+            r["polygon"] = poly.tolist()
             r.pop("masks", None)
     path.write_text(json.dumps(d, indent=1))
 
@@ -121,7 +126,7 @@ def _far_cameras(dst: Path, amount: float, seed: int) -> None:
     from ..io.images import write_image
     from ..scene import Camera, cameras_from_json, cameras_to_json
     from ..synthetic import tasks
-    from ..synthetic.writers import compose_8bit
+    from ..synthetic.writers import compose_8bit, save_npz
     gt = json.loads((dst / "gt" / "scene.json").read_text())
     cams = cameras_from_json(dst / "gt" / "test_cameras.json")
     tasks._init(gt["scene"], gt["seed"])
@@ -133,8 +138,8 @@ def _far_cameras(dst: Path, amount: float, seed: int) -> None:
         moved[name] = Camera(cam.K, T, cam.width, cam.height)
         r = tasks._TRACER.trace(moved[name])
         write_image(dst / "gt" / "test" / "images" / name, compose_8bit(r["I0"], r["I1"], r["beta"])[3])
+        save_npz(dst / "gt" / "test" / "geom" / f"{Path(name).stem}.npz", "lzma", **tasks._geom(r))
     (dst / "gt" / "test_cameras.json").write_text(cameras_to_json(moved))
-    shutil.rmtree(dst / "gt" / "test" / "geom", ignore_errors=True)
 
 
 def degrade_input(src: Path, dst: Path, kind: str, amount: float, seed: int = 0) -> Path:

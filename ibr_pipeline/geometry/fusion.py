@@ -185,7 +185,7 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
         attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
         attr_channels=((1), (1), (3)), voxel_size=options.voxel_size,
         block_resolution=options.block_resolution, block_count=options.block_count, device=dev)
-    n = 0
+    n = skipped = 0
     t_int = 0.0
     it = frames
     if progress:
@@ -201,6 +201,9 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
             color = np.full((h, w, 3), 0.5, np.float32)
         elif color.shape[:2] != (h, w):
             color = cv2.resize(np.asarray(color, np.float32), (w, h), interpolation=cv2.INTER_AREA)
+        if not np.any((depth > 0) & (depth < options.depth_max)):
+            skipped += 1  # nothing to integrate (all masked or out of range): open3d would abort
+            continue
         t0 = time.perf_counter()
         d_img = o3d.t.geometry.Image(o3c.Tensor(depth, device=dev))
         c_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color, np.float32), device=dev))
@@ -211,9 +214,10 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
         vbg.integrate(coords, d_img, c_img, K, T, 1.0, options.depth_max, options.trunc_voxels)
         t_int += time.perf_counter() - t0
         n += 1
-    stats = {"frames": n, "ms_per_frame": 1000 * t_int / max(n, 1)}
+    stats = {"frames": n, "skipped_empty_frames": skipped, "ms_per_frame": 1000 * t_int / max(n, 1)}
     if n == 0:
-        raise ValueError("tsdf_fuse: no frames")
+        raise ValueError("tsdf_fuse: no frame has valid depth to fuse"
+                         + (f" ({skipped} empty after masking)" if skipped else ""))
     tm = vbg.extract_triangle_mesh(weight_threshold=options.weight_threshold).to_legacy()
     mesh, removed = clean_mesh(np.asarray(tm.vertices), np.asarray(tm.triangles),
                                np.asarray(tm.vertex_colors) if tm.has_vertex_colors() else None,

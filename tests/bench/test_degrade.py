@@ -62,3 +62,17 @@ def test_bad_degradation_is_a_clear_error(tiny_scene, tmp_path):
         degrade_input(tiny_scene[0], tmp_path / "x", "blur", 1)
     with pytest.raises(InputError, match="amount"):
         degrade_input(tiny_scene[0], tmp_path / "x", "pose_rot", float("nan"))
+
+
+def test_far_cameras_get_new_ground_truth(tiny_scene, tmp_path):
+    src = tiny_scene[0]
+    far = degrade_input(src, tmp_path / "far", "far_camera", 1.0)
+    a = cameras_from_json(src / "gt" / "test_cameras.json")
+    b = cameras_from_json(far / "gt" / "test_cameras.json")
+    for name in a:
+        assert np.linalg.norm(a[name].center - b[name].center) == pytest.approx(1.0, abs=1e-6)
+        old = read_image(src / "gt" / "test" / "images" / name)
+        new = read_image(far / "gt" / "test" / "images" / name)
+        assert np.abs(old - new).mean() > 0.01  # re-rendered from the new viewpoint
+        with np.load(far / "gt" / "test" / "geom" / f"{name[:-4]}.npz") as z:
+            assert z["depth"].shape == old.shape[:2]

@@ -81,3 +81,22 @@ def test_bad_shapes_raise_value_error(sample):
                     np.ones((2, 2)), 5)
     with pytest.raises(ValueError, match="ref_image"):
         plane_sweep(np.zeros((4, 4, 2)), cams["0005.png"], [img["0004.png"]], [cams["0004.png"]], 0.5, 5)
+
+
+def test_fusion_skips_frames_left_empty_by_masking(tiny_scene):
+    """A frame with no valid depth (e.g. all masked as mirror) is skipped, not fatal (open3d
+    aborts on it); only when no frame has depth is it an error."""
+    import pytest
+
+    from ibr_pipeline.geometry.fusion import tsdf_fuse
+    from ibr_pipeline.io.images import read_depth_png
+    from ibr_pipeline.scene import cameras_from_json
+
+    root = tiny_scene[0]
+    cams = cameras_from_json(root / "cameras.json")
+    name = sorted(cams)[0]
+    d = read_depth_png(root / "depth" / f"{name[:-4]}.png")
+    mesh, stats = tsdf_fuse([(np.zeros_like(d), cams[name], None), (d, cams[name], None)])
+    assert stats["frames"] == 1 and stats["skipped_empty_frames"] == 1 and len(mesh.faces) > 100
+    with pytest.raises(ValueError, match="no frame has valid depth"):
+        tsdf_fuse([(np.zeros_like(d), cams[name], None)])
