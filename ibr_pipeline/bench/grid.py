@@ -69,6 +69,8 @@ def settings(grid: str) -> list[Setting]:
 # Every bench run caps DSRNet training so that a grid fits in an afternoon on 2 cores; the
 # supersample stage records its own held-out comparison with bicubic upsampling either way.
 BENCH_DEFAULTS = {"supersample": {"time_budget_s": 60}}
+# Stability settings score the renders (before supersampling): DSRNet gets a token budget there.
+STABILITY_DEFAULTS = {"supersample": {"time_budget_s": 15}}
 
 
 def scene_folder(cache: Path, scene: str, seed: int, width: int, height: int, views: int) -> Path:
@@ -166,7 +168,8 @@ def run_setting(s: Setting, scene: str, seed: int, base: tuple[int, int, int], o
         reused = None
     (ws_path / "ibr.toml").write_text(f"[input]\npath = {json.dumps(str(src.resolve()))}\n")
     ws = Workspace(ws_path)
-    overrides = _merge(BENCH_DEFAULTS, s.overrides)
+    overrides = _merge(STABILITY_DEFAULTS if s.group == "stability" else BENCH_DEFAULTS,
+                       s.overrides)
     t0 = time.perf_counter()
     with make_executor(jobs, None, 0) as ex:
         results = run(STAGES, ws, load_configs(STAGES, ws, overrides), STAGES, executor=ex,
