@@ -20,7 +20,7 @@ scipy only (no torch: its import alone cost seconds per worker).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -30,11 +30,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from ..scene import Camera
+
+if TYPE_CHECKING:  # annotations only: torch is imported where it is used (fast CLI start)
+    import torch
 
 FLAT_VAR = 1e-6  # grey-level variance (values in [0, 1]) below which a patch counts as flat
 _UNSEEN = 1e3  # sentinel cost of a source in which the pixel does not project
