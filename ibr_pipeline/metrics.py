@@ -56,14 +56,18 @@ def ssim_map(a: np.ndarray, b: np.ndarray, sigma: float = 1.5) -> np.ndarray:
     return out / a.shape[2]
 
 
+def _masked_mean(values: np.ndarray, mask: np.ndarray | None) -> float:
+    """Mean of a per-pixel map, over `mask` pixels when given (NaN for an empty mask)."""
+    if mask is None:
+        return float(values.mean())
+    mask = np.asarray(mask, dtype=bool)
+    return float(values[mask].mean()) if mask.any() else float("nan")
+
+
 def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Mean SSIM; over `mask` pixels when given."""
     _check(a, b, mask)
-    m = ssim_map(a, b)
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        return float(m[mask].mean()) if mask.any() else float("nan")
-    return float(m.mean())
+    return _masked_mean(ssim_map(a, b), mask)
 
 
 def flip_map(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
@@ -83,11 +87,7 @@ def flip_map(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
 def flip(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Mean LDR-FLIP error; over `mask` pixels when given."""
     _check(reference, test, mask)
-    m = flip_map(reference, test)
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        return float(m[mask].mean()) if mask.any() else float("nan")
-    return float(m.mean())
+    return _masked_mean(flip_map(reference, test), mask)
 
 
 def all_metrics(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None,
@@ -102,5 +102,5 @@ def all_metrics(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None
         out["psnr_mask"] = psnr(reference, test, mask)
         out["ssim_mask"] = ssim(reference, test, mask)
         if fm is not None:
-            out["flip_mask"] = float(fm[mask].mean()) if mask.any() else float("nan")
+            out["flip_mask"] = _masked_mean(fm, mask)
     return out

@@ -235,7 +235,8 @@ def _bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
             + ay * ((1 - ax) * img[y1, x0] + ax * img[y1, x1]))
 
 
-def _rodrigues(w: np.ndarray) -> np.ndarray:
+def rodrigues(w: np.ndarray) -> np.ndarray:
+    """3x3 rotation of the axis-angle vector `w` (Rodrigues' formula)."""
     th = float(np.linalg.norm(w))
     if th < 1e-12:
         return np.eye(3)
@@ -350,7 +351,7 @@ class Problem:
     def b_positions(self, pose, i):
         """b_q with M1 moved by (R, T): R^T (X - c - T) + c projected into the reference."""
         X = self.terms[i].X1
-        Rm = _rodrigues(pose[:3])
+        Rm = rodrigues(pose[:3])
         Xm = (X - self.centre - pose[3:]) @ Rm + self.centre
         cam = self.ref.camera
         c = Xm @ cam.R.T + cam.t

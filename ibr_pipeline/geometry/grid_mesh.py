@@ -64,24 +64,11 @@ def compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def render_depth(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray:
     """(H, W) z-depth of a world-space mesh seen by `camera` (0 = miss), by open3d ray casting."""
-    from ..render.raycast import build_scene
+    from ..render import raycast
 
     if len(faces) == 0:
         return np.zeros((camera.height, camera.width))
-    return render_depth_scene(build_scene(vertices, faces), camera)
-
-
-def render_depth_scene(scene, camera: Camera) -> np.ndarray:
-    """`render_depth` with a prebuilt open3d RaycastingScene (`render.raycast.build_scene`), so a
-    mesh rendered into several cameras builds its BVH once."""
-    from ..render.raycast import camera_rays, cast
-    from .normals import pixel_rays
-
-    h, w = camera.height, camera.width
-    o, d = camera_rays(camera)
-    t = cast(scene, o, d)["t_hit"]
-    rn = np.linalg.norm(pixel_rays(camera.K, h, w).reshape(-1, 3), axis=1)
-    return np.where(np.isfinite(t), t / rn, 0.0).reshape(h, w)
+    return raycast.render_depth(raycast.build_scene(vertices, faces), camera)
 
 
 def depth_error(mesh_depth: np.ndarray, ref_depth: np.ndarray, region: np.ndarray | None = None,

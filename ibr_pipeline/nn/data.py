@@ -155,14 +155,11 @@ class StandInRenderer:
             with np.load(geom) as z:
                 return z["depth"].astype(np.float32)
         from ..io.mesh import read_ply
-        from ..render.raycast import build_scene, camera_rays, cast
+        from ..render.raycast import build_scene, render_depth
         if self._mesh_scene is None:
             m = read_ply(self.folder / "gt/mesh.ply")
             self._mesh_scene = build_scene(m.vertices, m.faces)
-        o, d = camera_rays(camera)
-        t = cast(self._mesh_scene, o, d)["t_hit"]
-        z = t * (d @ camera.viewing_direction)
-        return np.where(np.isfinite(z), z, 0).reshape(camera.height, camera.width).astype(np.float32)
+        return render_depth(self._mesh_scene, camera).astype(np.float32)
 
     def __call__(self, name: str, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         import cv2

@@ -134,7 +134,7 @@ class GroundTruth:
 
     def virtual_depth(self, camera: Camera, depth: np.ndarray, beta: np.ndarray) -> np.ndarray:
         """(H, W) z-depth of the reflection layer's virtual points (0 outside reflectors)."""
-        from .raycast import camera_rays, cast
+        from .raycast import camera_rays, cast, hit_depth
         out = np.zeros(depth.shape, np.float64)
         refl = (beta > 0) & (depth > 0)
         if not refl.any() or not self.reflectors:
@@ -150,8 +150,7 @@ class GroundTruth:
             if not m.any():
                 continue
             hit = cast(self._scene(i), origins[m], dirs[m])["t_hit"]
-            z = hit * (dirs[m] @ camera.R[2])
-            vals = np.where(np.isfinite(z) & (z > 0), z, 0.0)
+            vals = hit_depth(hit, dirs[m], camera)
             flat = out.reshape(-1)
             flat[np.flatnonzero(m)] = vals
         return out.astype(np.float32)

@@ -35,6 +35,19 @@ def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     return origins, d_world
 
 
+def hit_depth(t_hit: np.ndarray, directions: np.ndarray, camera: Camera) -> np.ndarray:
+    """z-depth (scene.py convention) of hits at ranges `t_hit` along unit `directions` from the
+    camera centre; 0 where the ray missed (open3d's t_hit is a range, not a depth)."""
+    z = t_hit * (directions @ camera.viewing_direction)
+    return np.where(np.isfinite(z) & (z > 0), z, 0.0)
+
+
+def render_depth(scene, camera: Camera) -> np.ndarray:
+    """(H, W) z-depth image of a prebuilt scene (`build_scene`) seen by `camera`, 0 = miss."""
+    o, d = camera_rays(camera)
+    return hit_depth(cast(scene, o, d)["t_hit"], d, camera).reshape(camera.height, camera.width)
+
+
 def cast(scene, origins: np.ndarray, directions: np.ndarray) -> dict[str, np.ndarray]:
     """Cast (N, 3) rays; returns t_hit (inf on miss), primitive_ids (-1 on miss), primitive_uvs."""
     import open3d as o3d

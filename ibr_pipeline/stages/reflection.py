@@ -394,6 +394,7 @@ def run(ctx: StageContext, view: str) -> None:
     import cv2
     import numpy as np
 
+    from ..geometry.decompose import rodrigues
     from ..geometry.planes import grid_mesh
     from ..io.images import write_image
     from ..io.mesh import Mesh, read_ply, write_ply
@@ -431,7 +432,7 @@ def run(ctx: StageContext, view: str) -> None:
         X1 = g.X1.copy()
         pose = np.asarray(r["pose"])
         if np.any(pose != 0):  # the optimised rigid transform of M1 (Eq. 7)
-            Rm = _rodrigues_np(pose[:3])
+            Rm = rodrigues(pose[:3])
             c = np.nanmean(X1[m & (g.D1 > 0)], axis=0)
             X1 = (X1 - c) @ Rm.T + c + pose[3:]
         v, f = grid_mesh(X1, np.where(m, g.D1, 0.0), step=cfg.mesh_step)
@@ -461,16 +462,6 @@ def run(ctx: StageContext, view: str) -> None:
     report["reflectors"] = [{k: v for k, v in r.items() if k not in ("R", "mask", "geom")}
                             for r in results]
     ws.write_json(ws.view_file(view, "layers.json"), report)
-
-
-def _rodrigues_np(w):
-    import numpy as np
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        return np.eye(3)
-    k = np.asarray(w) / th
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * Kx + (1 - np.cos(th)) * Kx @ Kx
 
 
 STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",

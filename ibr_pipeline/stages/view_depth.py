@@ -119,7 +119,7 @@ def _run(ctx: StageContext, view: str) -> None:
 
     from ..errors import InputError
     from ..geometry import depth_refine as dr
-    from ..geometry.grid_mesh import render_depth_scene
+    from ..render.raycast import render_depth
     from ..geometry.normals import normals_from_depth, world_normals
     from ..io.images import read_image, write_image
 
@@ -141,7 +141,7 @@ def _run(ctx: StageContext, view: str) -> None:
     timings = {}
     # 1. initial depth: G ray cast into the view (Xu §4.2)
     t = time.perf_counter()
-    depth0 = render_depth_scene(scene, cam)
+    depth0 = render_depth(scene, cam)
     timings["render_ms"] = 1000 * (time.perf_counter() - t)
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
     t = time.perf_counter()
@@ -171,7 +171,7 @@ def _run(ctx: StageContext, view: str) -> None:
     if cfg.mvs and src and mask.any():
         src_imgs = [read_image(ws.path(ctx.scene.view(s).image)) for s in src]
         src_cams = [cams[s] for s in src]
-        src_depths = [render_depth_scene(scene, c) for c in src_cams]
+        src_depths = [render_depth(scene, c) for c in src_cams]
         half = int(np.ceil(0.5 * cfg.mask_side_m * cam.K[0, 0] / max(float(np.median(depth0[mask])), 0.1)))
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
