@@ -16,7 +16,7 @@ Measured:
   DSRNet without MVR (Table 3 ablation, trained separately with the same steps), bilinear and
   bicubic upsampling of the same half-resolution input, and the full-resolution stand-in render
   (same artefacts, no DSRNet);
-* a dense held-out sequence (`--sequence N` consecutive frames of the synthetic scene's test loop,
+* a dense held-out sequence (`--sequence N` consecutive frames of the synthetic scene's inner loop,
   traced here; never trained on): the same metrics per frame, and flicker = mean over frames of
   |(O_t − O_{t−1}) − (G_t − G_{t−1})| (temporal change that the ground truth does not have);
 * speed: training steps/s and total, inference per frame at 2x the input size given by
@@ -49,21 +49,21 @@ def _scene_folder(args) -> Path:
 
 
 def dense_sequence(folder: Path, n: int):
-    """n consecutive frames of the scene's test loop (held out: not on the capture path), traced
+    """n consecutive frames of the scene's inner loop (`paths.inner_loop_path`: not on the capture path), traced
     with the synthetic ray tracer: [(name, camera, image, depth)]."""
-    from ..synthetic.paths import test_path
+    from ..synthetic.paths import inner_loop_path
     from ..synthetic.scenes import build_world
     from ..synthetic.tracer import Tracer
 
     meta = json.loads((folder / "gt/scene.json").read_text())
     o = meta["options"]
     world = build_world(o["name"], o["seed"])
-    # the test loop sampled densely (96 frames, ~3.75 degrees apart): consecutive frames as a
+    # the inner loop sampled densely (96 frames, ~3.75 degrees apart): consecutive frames as a
     # viewer would see them; the loop is not the capture path (docs/SYNTHETIC.md)
-    cams = test_path(world, 96, o["width"], o["height"], o["seed"], every=1)
+    cams = inner_loop_path(world, 96, o["width"], o["height"], o["seed"], every=1)
     tracer = Tracer(world)
     out = []
-    for i, cam in enumerate(cams[1:n + 1]):  # frame 0 is a stored test view; 1..n are in between
+    for i, cam in enumerate(cams[1:n + 1]):  # frames 1..n (as in the figures measured so far)
         r = tracer.trace(cam)
         img = np.clip(np.round(r["image"] * 255) / 255, 0, 1).astype(np.float32)
         out.append((f"seq_{i:03d}.png", cam, img, r["depth"].astype(np.float32)))

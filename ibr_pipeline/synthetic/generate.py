@@ -52,10 +52,13 @@ class SynthOptions:
         self.validate()
         w, h, v, t, f = DEFAULTS[self.name]
         pick = lambda x, d: d if x is None else x  # noqa: E731
-        return replace(self, width=pick(self.width, w), height=pick(self.height, h),
-                       views=pick(self.views, v), test_views=pick(self.test_views, t),
-                       flythrough=pick(self.flythrough, f),
-                       jobs=pick(self.jobs, min(2, os.cpu_count() or 1)))
+        out = replace(self, width=pick(self.width, w), height=pick(self.height, h),
+                      views=pick(self.views, v), test_views=pick(self.test_views, t),
+                      flythrough=pick(self.flythrough, f),
+                      jobs=pick(self.jobs, min(2, os.cpu_count() or 1)))
+        if out.test_views > out.views:  # one held-out frame per gap between capture frames
+            raise InputError(f"--test-views ({out.test_views}) must be <= --views ({out.views})")
+        return out
 
     def validate(self) -> None:
         if self.name not in SCENES:
@@ -157,7 +160,7 @@ def generate(opts: SynthOptions, out: Path) -> dict:
     world = build_world(opts.name, opts.seed)
     W, H = opts.width, opts.height
     cap = capture_path(world, opts.views, W, H, opts.seed)
-    test = test_path(world, opts.test_views, W, H, opts.seed)
+    test = test_path(world, opts.test_views, W, H, opts.seed, opts.views)
     fly = flythrough_path(world, opts.flythrough, W, H)
     cap_names, test_names, fly_names = _names(opts)
     sw, sh = sensor_size(W, H, opts.depth_scale)

@@ -3,8 +3,10 @@
 All paths circle the free floor area of the room (World.path_center / path_radius) looking
 outwards, so together they see every wall. Capture: one loop with smooth seeded wobble in radius,
 height, yaw, pitch and roll (a person walking round the room filming the walls). Test: a second,
-different loop (smaller radius, lower, yaw offset) of 8 * n frames of which every 8th frame is
-kept, so no test view lies on the capture path. Fly-through: a smooth figure-eight-like curve
+frames of the same hand-held trajectory half-way between two consecutive capture frames (the
+held-out-frame protocol of IBR/NeRF benchmarks: interpolation inside the captured region). The
+old inner test loop (smaller radius, lower) is kept as `inner_loop_path`: it extrapolates outside
+the captured region (about a quarter of each frame seen by no capture view). Fly-through: a smooth figure-eight-like curve
 looking along its direction of travel, for videos.
 """
 from __future__ import annotations
@@ -42,9 +44,12 @@ def _wobble(phi: np.ndarray, rng: np.random.Generator, amp: float, harmonics=(2,
 
 
 def _loop(world: World, n: int, width: int, height: int, rng, radius: float, height_off: float,
-          yaw_off: float, wobble: float, phase: float) -> list[Camera]:
+          yaw_off: float, wobble: float, phase: float, steps=None) -> list[Camera]:
+    """n cameras at loop angles phase + 2*pi*steps/n (steps = 0..n-1 unless given; fractional
+    steps sample the same smooth trajectory in between)."""
     K = Camera.intrinsics_from_fov(width, height, HFOV_DEG)
-    phi = phase + 2 * np.pi * np.arange(n) / n
+    steps = np.arange(n, dtype=np.float64) if steps is None else np.asarray(steps, dtype=np.float64)
+    phi = phase + 2 * np.pi * steps / n
     r = radius * (1 + _wobble(phi, rng, 0.1) * (wobble > 0))
     cx, cy = world.path_center
     z = world.eye_height + height_off + _wobble(phi, rng, 0.06 * wobble)
@@ -52,18 +57,32 @@ def _loop(world: World, n: int, width: int, height: int, rng, radius: float, hei
     pitch = -0.18 + _wobble(phi, rng, 0.12 * wobble)
     roll = _wobble(phi, rng, 0.04 * wobble, harmonics=(3, 7, 11))
     return [camera_from_angles((cx + r[i] * np.cos(phi[i]), cy + r[i] * np.sin(phi[i]), z[i]),
-                               yaw[i], pitch[i], roll[i], K, width, height) for i in range(n)]
+                               yaw[i], pitch[i], roll[i], K, width, height) for i in range(len(phi))]
 
 
-def capture_path(world: World, n: int, width: int, height: int, seed: int) -> list[Camera]:
+def capture_path(world: World, n: int, width: int, height: int, seed: int, steps=None) -> list[Camera]:
+    """The n-view capture loop; `steps` (fractional frame indices) samples the same trajectory
+    between capture frames."""
     rng = np.random.default_rng([seed, 101])
+    phase = rng.uniform(0, 2 * np.pi)
     # radius 1.3 x path_radius: enough sideways baseline between views for triangulation
-    return _loop(world, n, width, height, rng, 1.3 * world.path_radius, 0.0, 0.0, 1.0,
-                 rng.uniform(0, 2 * np.pi))
+    return _loop(world, n, width, height, rng, 1.3 * world.path_radius, 0.0, 0.0, 1.0, phase, steps)
 
 
-def test_path(world: World, n: int, width: int, height: int, seed: int, every: int = 8) -> list[Camera]:
-    """n held-out views: every `every`-th frame of a second loop (not on the capture path)."""
+def test_path(world: World, n: int, width: int, height: int, seed: int, n_capture: int) -> list[Camera]:
+    """n held-out views on the capture trajectory, each half-way between capture frames k and
+    k + 1 with k = floor(j * n_capture / n): spread evenly round the loop, never on a capture
+    frame, and inside the captured region (a new photograph where the user walked)."""
+    if n_capture < 1:
+        raise ValueError(f"n_capture must be >= 1, got {n_capture}")
+    steps = np.floor(np.arange(n) * n_capture / max(n, 1)) + 0.5
+    return capture_path(world, n_capture, width, height, seed, steps)
+
+
+def inner_loop_path(world: World, n: int, width: int, height: int, seed: int, every: int = 8) -> list[Camera]:
+    """n views: every `every`-th frame of a second, smaller and lower loop (radius 0.55x, 20 cm
+    lower, yaw offset 0.3 rad). Off the capture path and partly outside the captured region;
+    the DSRNet bench's dense stand-in sequences use it (every=1)."""
     rng = np.random.default_rng([seed, 202])
     full = _loop(world, n * every, width, height, rng, 0.55 * world.path_radius, -0.2, 0.3, 0.7,
                  rng.uniform(0, 2 * np.pi))

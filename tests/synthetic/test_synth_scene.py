@@ -43,11 +43,34 @@ def test_tiny_is_complete(tiny_scene):
         assert np.allclose(v.camera.cam_from_world, js[v.name].cam_from_world, atol=1e-6)
 
 
-def test_test_views_are_off_the_capture_path(tiny_scene):
+def test_test_views_are_held_out_frames_between_capture_frames(tiny_scene):
+    """Held-out protocol: each test camera lies on the capture trajectory between two
+    consecutive capture frames, on neither of them."""
     root = tiny_scene[0]
     cap = np.array([c.center for c in cameras_from_json(root / "cameras.json").values()])
     for c in cameras_from_json(root / "gt" / "test_cameras.json").values():
-        assert np.linalg.norm(cap - c.center, axis=1).min() > 0.05
+        d = np.linalg.norm(cap - c.center, axis=1)
+        a, b = np.argsort(d)[:2]
+        assert abs(int(a) - int(b)) in (1, len(cap) - 1)  # the two nearest are consecutive
+        gap = np.linalg.norm(cap[a] - cap[b])
+        assert 0.05 < d[a] < gap and d[b] < gap
+
+
+def test_test_path_samples_the_capture_trajectory():
+    from ibr_pipeline.synthetic.paths import capture_path, test_path
+    from ibr_pipeline.synthetic.scenes import build_world
+
+    world = build_world("mirror_room", 0)
+    cap = capture_path(world, 24, 64, 48, 0)
+    test = test_path(world, 4, 64, 48, 0, n_capture=24)
+    # fractional steps of the same trajectory: step 0 and 1 of a 2x denser sampling are capture
+    dense = capture_path(world, 24, 64, 48, 0, steps=[0.0, 1.0, 0.5])
+    assert np.allclose(dense[0].cam_from_world, cap[0].cam_from_world)
+    assert np.allclose(dense[1].cam_from_world, cap[1].cam_from_world)
+    assert np.allclose(dense[2].cam_from_world, test[0].cam_from_world)
+    centres = np.array([c.center for c in cap])
+    for c in test:
+        assert np.linalg.norm(centres - c.center, axis=1).min() > 0.05
 
 
 def test_sensor_depth_format(tiny_scene):
