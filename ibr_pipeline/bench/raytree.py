@@ -12,7 +12,9 @@ regions (first surface reflective / refractive). Writes a Fig. 7-like side-by-si
 (naive | ground truth | ours) and a Fig. 8-like plot of the gradient-descent energy per step.
 Speed: median wall time per frame of decode + warp + fill + composite at `--speed-size`, three
 nodes, with a Table 1-like breakdown per stage, and the median CPU time (time.process_time, all
-threads of this process) per frame, which is less inflated than wall time on a shared machine. JSON: OUT/bench_raytree.json.
+threads of this process) per frame, which is less inflated than wall time on a shared machine;
+the naive warp of the same tree is timed interleaved in the same run as a baseline (ratio
+ours / naive: comparable between runs on a loaded machine). JSON: OUT/bench_raytree.json.
 """
 from __future__ import annotations
 
@@ -148,31 +150,57 @@ def speed_case(size, tree_file: Path | None = None):
 
 
 def speed(size, repeats, device, tree_file: Path | None = None) -> dict:
+    """Median per-frame time of decode + warp (ours) and, interleaved in the same run, of the
+    naive baseline (decode + first-hit-depth warp of the composited image + push-pull): their
+    ratio is comparable across runs on a loaded machine, the absolute times are not."""
     import torch
 
-    from ..raytree.warp import WarpOptions, warp
+    from ..raytree.decode import decode
+    from ..raytree.warp import WarpOptions, naive_warp, warp
 
     tree, new = speed_case(size, tree_file)
     size = tree.size
-    runs, cpu = [], []
+    runs, cpu, base_wall, base_cpu = [], [], [], []
     o = WarpOptions()
+
+    def baseline():
+        naive_warp(decode(tree, device, o.decode), new, o)
+
     warp(tree, new, o, device=device)  # warm-up (allocations, CUDA context)
+    baseline()
     for _ in range(repeats):
         p0 = time.process_time()   # CPU time of this process (all its threads): less affected
         runs.append(warp(tree, new, o, device=device).timings)  # by other users' load
         cpu.append(time.process_time() - p0)
+        p0, t0 = time.process_time(), time.perf_counter()
+        baseline()
+        _sync(device)
+        base_cpu.append(time.process_time() - p0)
+        base_wall.append(time.perf_counter() - t0)
     keys = list(runs[0])
     med = {k: round(1e3 * float(np.median([r.get(k, 0.0) for r in runs])), 2) for k in keys}
     try:
         load = open("/proc/loadavg").read().split()[:3]
     except OSError:
         load = None
+    ours_cpu, ours_wall = float(np.median(cpu)), float(np.median([r["total"] for r in runs]))
     return {"size": list(size), "nodes": tree.n_nodes, "device": str(device),
             "threads": torch.get_num_threads(), "repeats": repeats,
             "median_ms": med, "total_runs_ms": [round(r["total"] * 1e3, 1) for r in runs],
-            "cpu_ms_per_frame_median": round(1e3 * float(np.median(cpu)), 1),
+            "cpu_ms_per_frame_median": round(1e3 * ours_cpu, 1),
             "cpu_runs_ms": [round(x * 1e3, 1) for x in cpu],
+            "baseline": "naive warp (decode + first-hit-depth warp + push-pull), interleaved",
+            "baseline_wall_ms_median": round(1e3 * float(np.median(base_wall)), 1),
+            "baseline_cpu_ms_median": round(1e3 * float(np.median(base_cpu)), 1),
+            "ratio_wall_vs_baseline": round(ours_wall / max(float(np.median(base_wall)), 1e-9), 3),
+            "ratio_cpu_vs_baseline": round(ours_cpu / max(float(np.median(base_cpu)), 1e-9), 3),
             "loadavg": load}
+
+
+def _sync(device) -> None:
+    import torch
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,6 +28,7 @@ class Flow:
     pix: torch.Tensor | None = None      # (K,) flat indices of the ok new pixels (any order)
     taps: ops.Taps | None = None         # old-image bilinear taps of src at those pixels
     sampler: ops.Sampler | None = None   # the root sampler the taps belong to
+    values: torch.Tensor | None = None   # (K, C) the `extra` buffer read at the taps
 
 
 def splat_keys(uv: torch.Tensor, z: torch.Tensor, valid: torch.Tensor, new_size: tuple[int, int]):
@@ -40,11 +41,13 @@ def splat_keys(uv: torch.Tensor, z: torch.Tensor, valid: torch.Tensor, new_size:
     zf = z.reshape(-1)
     tx, ty = t[:, 0], t[:, 1]
     ok = valid.reshape(-1) & (zf > 1e-6) & (tx >= 0) & (tx < Wn) & (ty >= 0) & (ty < Hn)
-    sel = torch.nonzero(ok).squeeze(-1)
-    zq = torch.round(zf[sel].clamp(0, 1e4) * 1e5).long()  # 10 um depth quantum for the depth test
-    key = zq * n_old + sel
-    buf = torch.full((Hn * Wn,), _BIG, dtype=torch.int64, device=uv.device)
-    buf.scatter_reduce_(0, ty[sel] * Wn + tx[sel], key, reduce="amin")
+    # no compaction: points that do not land go to a spare slot at the end of the buffer
+    target = torch.where(ok, ty * Wn + tx, torch.full_like(tx, Hn * Wn))
+    zq = torch.round(zf.clamp(0, 1e4) * 1e5).long()  # 10 um depth quantum for the depth test
+    key = zq * n_old + torch.arange(n_old, device=uv.device)
+    buf = torch.full((Hn * Wn + 1,), _BIG, dtype=torch.int64, device=uv.device)
+    buf.scatter_reduce_(0, target, key, reduce="amin")
+    buf = buf[:-1]
     return buf
 
 
@@ -59,7 +62,8 @@ def closest_3x3(keys: torch.Tensor, new_size: tuple[int, int]) -> torch.Tensor:
 
 def diffuse_flow(pos: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, P_new: torch.Tensor,
                  new_size: tuple[int, int], fpi_eps: float = 0.5, rel_tol: float = 0.05,
-                 fallback: bool = True, sampler: ops.Sampler | None = None) -> Flow:
+                 fallback: bool = True, sampler: ops.Sampler | None = None,
+                 extra: torch.Tensor | None = None) -> Flow:
     """Backward diffuse flow for positions `pos` (H, W, 3) seen at old z-depth `depth` (H, W).
 
     fpi_eps: convergence threshold of the fixed-point step in new-image pixels (bilinear
@@ -68,7 +72,9 @@ def diffuse_flow(pos: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, P_
     point (our addition: keeps background pixels next to a foreground edge instead of leaving a
     hole for push-pull); evaluated only on the pixels that failed.
     The result also lists the converged pixels and their bilinear taps, so the caller samples
-    every root buffer at the sub-pixel fixed-point location without recomputing them."""
+    every root buffer at the sub-pixel fixed-point location without recomputing them; `extra`
+    (1, C, H, W) (the sampler's chw layout, e.g. the root radiance) is read in the same bilinear
+    pass as the fixed-point residual and returned as Flow.values (K, C)."""
     ops.check(pos, (None, None, 3), "positions")
     ops.check(valid, tuple(pos.shape[:2]), "valid")
     ops.check(depth, tuple(pos.shape[:2]), "depth")
@@ -83,6 +89,8 @@ def diffuse_flow(pos: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, P_
     sampler = sampler or ops.Sampler(valid, depth, rel_tol)
     uv_flat = uv.reshape(-1, 2)
     uv_chw = sampler.chw(uv)
+    if extra is not None:
+        uv_chw = torch.cat([uv_chw, extra], 1)
     eps2 = fpi_eps * fpi_eps
 
     def xy(flat_idx, width):
@@ -99,29 +107,29 @@ def diffuse_flow(pos: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, P_
         p = xy(pix, Wn)
         x1 = xy(idx, W) + (p - uv_flat[idx])
         t = sampler.taps(x1)
-        uv1, smooth, defined = sampler.sample(uv_chw, x1, t)
-        res2 = ((uv1 - p) ** 2).sum(-1)
+        vals, smooth, defined = sampler.sample(uv_chw, x1, t)
+        res2 = ((vals[:, :2] - p) ** 2).sum(-1)
         conv = defined & (res2 < torch.where(smooth, eps2, 4 * eps2)) & \
             (x1[:, 0] > -0.5) & (x1[:, 0] < W - 0.5) & (x1[:, 1] > -0.5) & (x1[:, 1] < H - 0.5)
-        return x1, conv
+        sel = torch.nonzero(conv).squeeze(-1)   # keep the converged ones (and their taps)
+        return pix[sel], x1[sel], t[sel], vals[sel, 2:]
 
     src = torch.zeros(Hn * Wn, 2, device=dev, dtype=pos.dtype)
     ok = torch.zeros(Hn * Wn, dtype=torch.bool, device=dev)
     cand = torch.nonzero(filled != _BIG).squeeze(-1)
-    x1, conv = fpi(filled, cand)
-    src[cand] = x1
-    ok[cand] = conv
+    pix, x1, taps, vals = fpi(filled, cand)
+    src[pix] = x1
+    ok[pix] = True
     if fallback:
         fb = torch.nonzero(~ok & (direct != _BIG)).squeeze(-1)
         if len(fb):
-            xb, cb = fpi(direct, fb)
-            fb, xb = fb[cb], xb[cb]
+            fb, xb, tb, vb = fpi(direct, fb)
             src[fb] = xb
             ok[fb] = True
-    pix = torch.nonzero(ok).squeeze(-1)
-    taps = sampler.taps(src[pix])   # the taps every root buffer is read with
+            pix, taps, vals = torch.cat([pix, fb]), ops.Taps.cat([taps, tb]), torch.cat([vals, vb])
     return Flow(src=src.view(Hn, Wn, 2), ok=ok.view(Hn, Wn), splat_hit=(direct != _BIG).view(Hn, Wn),
-                filled=(filled != _BIG).view(Hn, Wn), pix=pix, taps=taps, sampler=sampler)
+                filled=(filled != _BIG).view(Hn, Wn), pix=pix, taps=taps, sampler=sampler,
+                values=vals if extra is not None else None)
 
 
 def projection_matrix(K, cam_from_world, device) -> torch.Tensor:

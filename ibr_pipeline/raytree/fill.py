@@ -29,13 +29,15 @@ def push_pull(img: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     H, W, C = img.shape
     w = valid.to(img.dtype)[None, None]
     c = (img * w[0, 0, ..., None]).permute(2, 0, 1)[None]
+    cw = torch.cat([c, w], 1)      # colour and weight pulled in one pooling pass
     levels = []
-    while min(c.shape[-2:]) > 1:
+    while min(cw.shape[-2:]) > 1:
         # pull: weighted 2x2 average of valid children (ceil_mode keeps odd borders)
-        cs = F.avg_pool2d(c, 2, ceil_mode=True)
-        ws = F.avg_pool2d(w, 2, ceil_mode=True)
+        cw = F.avg_pool2d(cw, 2, ceil_mode=True)
+        ws = cw[:, C:]
         w = (ws > 0).to(img.dtype)
-        c = cs / ws.clamp_min(1e-12) * w
+        c = cw[:, :C] / ws.clamp_min(1e-12) * w
+        cw = torch.cat([c, w], 1)
         levels.append((c, w))
     if not levels:  # a 1-pixel-high / -wide image: nothing to pull from (holes stay 0)
         return img * valid[..., None].to(img.dtype)

@@ -16,7 +16,13 @@ def check(t: torch.Tensor, shape: tuple, name: str) -> None:
 
 
 def normalize(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    return v / v.norm(dim=-1, keepdim=True).clamp_min(eps)
+    """v / |v| over the last axis (3-vectors: fused multiply-adds on the 3 planes and one
+    rsqrt, ~1.5x faster on CPU than v.norm(dim=-1))."""
+    if v.shape[-1] != 3 or v.is_complex():
+        return v / v.norm(dim=-1, keepdim=True).clamp_min(eps)
+    x, y, z = v.unbind(-1)
+    s = (x * x).addcmul_(y, y).addcmul_(z, z).clamp_min_(eps * eps).rsqrt_()
+    return v * s.unsqueeze(-1)
 
 
 def reflect(d: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
@@ -72,17 +78,23 @@ def gaussian_kernel(ksize: int, sigma: float, device, dtype=torch.float32) -> to
 
 def blur_masked(img: torch.Tensor, mask: torch.Tensor, ksize: int = 7, sigma: float = 0.0) -> torch.Tensor:
     """Separable Gaussian blur of (H, W, C) over the pixels where mask (H, W) is true
-    (normalised convolution: invalid pixels neither contribute nor get diluted). The C + 1
-    channels are convolved as a batch of single-channel images (much faster on CPU than a
-    grouped convolution)."""
-    k = gaussian_kernel(ksize, sigma, img.device, img.dtype)
+    (normalised convolution: invalid pixels neither contribute nor get diluted), replicate
+    border. The C + 1 channels are filtered as shifted weighted sums of slices (ksize
+    multiply-adds per axis: ~10x faster on CPU than a 1-channel conv2d, same on CUDA)."""
+    k = gaussian_kernel(ksize, sigma, img.device, img.dtype).tolist()
     m = mask.to(img.dtype)
-    x = torch.cat([(img * m[..., None]).permute(2, 0, 1), m[None]], 0)[:, None]  # (C+1, 1, H, W)
+    x = torch.cat([(img * m[..., None]).permute(2, 0, 1), m[None]], 0)  # (C+1, H, W)
     pad = ksize // 2
+    H, W = mask.shape
     F = torch.nn.functional
-    x = F.conv2d(F.pad(x, (pad, pad, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-    x = F.conv2d(F.pad(x, (0, 0, pad, pad), mode="replicate"), k.view(1, 1, -1, 1))
-    x = x[:, 0]
+    xp = F.pad(x[None], (pad, pad, 0, 0), mode="replicate")[0]
+    x = xp[..., 0:W] * k[0]
+    for j in range(1, ksize):
+        x.add_(xp[..., j:j + W], alpha=k[j])
+    xp = F.pad(x[None], (0, 0, pad, pad), mode="replicate")[0]
+    x = xp[:, 0:H] * k[0]
+    for j in range(1, ksize):
+        x.add_(xp[:, j:j + H], alpha=k[j])
     return (x[:-1] / x[-1:].clamp_min(1e-8)).permute(1, 2, 0)
 
 
@@ -141,7 +153,7 @@ class Sampler:
     lookup costs one gather instead of four validity / depth gathers and a min / max."""
 
     def __init__(self, valid: torch.Tensor, key: torch.Tensor, rel_tol: float = 0.05,
-                 label: torch.Tensor | None = None):
+                 label: torch.Tensor | None = None, slack: torch.Tensor | None = None):
         """label (H, W) int, optional: a quad whose 4 labels differ (e.g. a diffuse wall next to
         a flush mirror: same depth, different ray-tree nodes) is not smooth either, so colour
         and node bits are then read from the same (nearest) pixel, never blended across."""
@@ -171,7 +183,13 @@ class Sampler:
                 lb = lb[:1].expand(2, -1)
             a0 = lb[:-1, :-1]
             ok = ok & (lb[:-1, 1:] == a0) & (lb[1:, :-1] == a0) & (lb[1:, 1:] == a0)
-        self.quad_ok = (ok & (kmax - kmin <= rel_tol * kmin.abs().clamp_min(1e-6)))[:self.H, :self.W].reshape(-1)
+        tol = rel_tol * kmin.abs().clamp_min(1e-6)
+        if slack is not None:   # (H, W) extra relative tolerance per quad (top-left pixel)
+            check(slack, tuple(valid.shape), "slack")
+            tol = tol[:self.H, :self.W] + slack * kmax.abs()[:self.H, :self.W]
+            kmax, kmin = kmax[:self.H, :self.W], kmin[:self.H, :self.W]
+            ok = ok[:self.H, :self.W]
+        self.quad_ok = (ok & (kmax - kmin <= tol))[:self.H, :self.W].reshape(-1)
         dev = valid.device
         dx = 1 if self.W > 1 else 0
         dy = self.W if self.H > 1 else 0

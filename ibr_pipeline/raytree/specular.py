@@ -38,6 +38,11 @@ class SpecularOptions:
     step_scale: float = 1.0   # initial Polyak step multiplier s (halved on rejection)
     max_step_px: float = 64.0  # longest single step in old-image pixels
     rel_tol: float = 0.1      # depth discontinuity: node depths of the 4 taps differ > 10 %
+    div_tol: float = 8.0      # ... plus div_tol x (angle between the quad's rays) x depth: a
+                              # continuous surface seen at incidence i changes its distance by
+                              # ~ tan(i) x angle x depth between two rays (8: i up to 83 deg);
+                              # where the rays diverge (a convex mirror's rim) a fixed 10 % flags
+                              # continuous surfaces as discontinuities. 0: the fixed test only
     min_step_px: float = 1.0 / 64  # a pixel stops when its step is shorter (0: never)
     snap_radius: int = 2      # after the descent, undefined pixels test the old pixels in a
                               # (2r+1)^2 window around their best location (0: off)
@@ -64,65 +69,106 @@ def specular_directions(w: torch.Tensor, n: torch.Tensor, c_new: torch.Tensor,
     return ops.normalize(t), ~tir
 
 
+def quad_table(Ws: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """(H*W, 16) bilinear coefficients of every 2x2 quad (top-left pixel, order x, y) of the
+    positions Ws (H, W, 3) and the node depth delta (H, W): rows [a | b | c | d] with
+    f(x0 + fx, y0 + fy) = a + fx b + fy c + fx fy d, i.e. a = P00, b = P10 - P00, c = P01 - P00,
+    d = P11 - P10 - P01 + P00 (columns 0-11 the position, 12-15 delta). A per-tree table: one
+    64-byte row gather gives the bilinear value *and* the image-space finite differences
+    dp/dx = b + fy d, dp/dy = c + fx d (§3.4 "image-space finite differences") of a location."""
+    H, W = delta.shape
+    X = torch.cat([Ws, delta[..., None]], -1).permute(2, 0, 1)[None]             # (1, 4, H, W)
+    Xp = torch.nn.functional.pad(X, (0, 1, 0, 1), mode="replicate")[0]           # (4, H+1, W+1)
+    P00, P10, P01, P11 = Xp[:, :H, :W], Xp[:, :H, 1:], Xp[:, 1:, :W], Xp[:, 1:, 1:]
+    if W == 1:   # the sampler's taps then use the same column (offset 0)
+        P10, P11 = P00, P01
+    if H == 1:
+        P01, P11 = P00, P10
+    a, b, c, d = P00, P10 - P00, P01 - P00, P11 - P10 - P01 + P00
+    # column layout: position a b c d (12), then delta a b c d (4)
+    T = torch.cat([a[:3], b[:3], c[:3], d[:3], a[3:], b[3:], c[3:], d[3:]], 0)  # (16, H, W)
+    return T.reshape(16, -1).T.contiguous()
+
+
 class _Energy:
     """Delta(omega, W_s(q) - w) and its image-space gradient for M pixels at once.
 
-    Vectors are kept as (3, M) rows (structure of arrays): the 4 bilinear taps are 4 column
-    gathers of the (3, H*W) position table, and every dot product is a sum over the short first
-    axis, which vectorises over M."""
+    One row gather of the per-tree quad table (quad_table) per evaluation; the vector algebra
+    runs on separate (M,) planes with fused multiply-adds (the fewest passes over memory in
+    eager torch). Non-smooth locations (an invalid tap or a depth discontinuity, ops.Sampler)
+    read the nearest valid tap with a zero gradient; outside / no valid tap: Delta = pi."""
 
-    def __init__(self, Ws, delta, valid, rel_tol, sampler=None):
+    def __init__(self, Ws, delta, valid, rel_tol, sampler=None, quad=None):
         self.H, self.W = valid.shape
         self.Ws = Ws.reshape(-1, 3)
-        self.WsT = self.Ws.T.contiguous()                      # (3, H*W)
         self.sampler = sampler or ops.Sampler(valid, delta, rel_tol)
+        self.quad = quad_table(Ws, delta) if quad is None else quad
+        self.quad_ok = self.sampler.quad_ok
 
-    def __call__(self, q, wT, omT, taps=None):
-        """q (M, 2); wT, omT (3, M). Returns Delta (M,), gradient (M, 2), smooth (M,)."""
-        t = self.sampler.taps(q) if taps is None else taps
-        o1, o2 = self.sampler.offs[1], self.sampler.offs[2]
-        i0 = t.i0
-        P0 = self.WsT.index_select(1, i0)
-        P1 = self.WsT.index_select(1, i0 + o1)
-        P2 = self.WsT.index_select(1, i0 + o2)
-        P3 = self.WsT.index_select(1, i0 + (o1 + o2))
-        fx, fy = t.fx, t.fy
-        d01 = P1 - P0
-        d23 = P3 - P2
-        top = P0 + fx * d01
-        dpy = (P2 + fx * d23) - top                          # dp/dy (bilinear finite difference)
-        p = top + fy * dpy                                   # bilinear W_s(q)
-        rough = torch.nonzero(~t.smooth).squeeze(-1)
-        if len(rough):
-            p[:, rough] = self.WsT[:, t.nearest[rough].clamp_min(0)]
-        v = p - wT
-        # Delta = angle(omega, v) = atan2(|omega x v|, omega . v), |omega| = 1
-        vv = (v * v).sum(0).clamp_min(1e-18)
-        dot = (omT * v).sum(0)
-        perp = omT - (dot / vv) * v                          # omega minus its part along v
-        pv = ((perp * perp).sum(0) * vv).sqrt()              # |omega_perp| |v| = |omega x v|
+    def coeffs(self, qx, qy):
+        """(16, M) quad coefficients at locations (qx, qy), fractions fx, fy, smooth (M,) and
+        defined (M,) (a valid tap was read)."""
+        W, H = self.W, self.H
+        xc, yc = qx.clamp(0, W - 1), qy.clamp(0, H - 1)
+        x0 = xc.floor().clamp_(max=max(W - 2, 0))
+        y0 = yc.floor().clamp_(max=max(H - 2, 0))
+        fx, fy = xc - x0, yc - y0
+        i0 = (y0 * W + x0).long()
+        inside = (qx >= -0.5) & (qx <= W - 0.5) & (qy >= -0.5) & (qy <= H - 0.5)
+        smooth = self.quad_ok[i0] & inside
+        C = self.quad.index_select(0, i0).T.contiguous()
+        defined = smooth
+        rough = torch.nonzero(~smooth).squeeze(-1)
+        if len(rough):   # nearest valid tap (ops.Sampler rule), constant: zero differences
+            nr = self.sampler.taps(torch.stack([qx[rough], qy[rough]], -1)).nearest
+            C[:, rough] = 0.0
+            C[0:3, rough] = self.Ws[nr.clamp_min(0)].T
+            C[12, rough] = self.quad[nr.clamp_min(0), 12]
+            defined = smooth.clone()
+            defined[rough] = nr >= 0
+        return C, fx, fy, smooth, defined
+
+    def __call__(self, qx, qy, w, om, with_delta=False):
+        """qx, qy (M,); w, om: 3-tuples of (M,) planes. Returns Delta (M,), gradient gx, gy (M,),
+        smooth (M,) [, bilinear delta (M,), defined (M,)]."""
+        C, fx, fy, smooth, defined = self.coeffs(qx, qy)
+        a0, a1, a2, b0, b1, b2, c0, c1, c2, d0, d1, d2 = C[:12].unbind(0)
+        y0, y1, y2 = torch.addcmul(c0, d0, fx), torch.addcmul(c1, d1, fx), torch.addcmul(c2, d2, fx)
+        x0, x1, x2 = torch.addcmul(b0, d0, fy), torch.addcmul(b1, d1, fy), torch.addcmul(b2, d2, fy)
+        # v = W_s(q) - w (bilinear), dp/dx = x*, dp/dy = y*
+        v0 = torch.addcmul(torch.addcmul(a0, b0, fx), y0, fy).sub_(w[0])
+        v1 = torch.addcmul(torch.addcmul(a1, b1, fx), y1, fy).sub_(w[1])
+        v2 = torch.addcmul(torch.addcmul(a2, b2, fx), y2, fy).sub_(w[2])
+        # Delta = angle(omega, v) = atan2(|omega x v|, omega . v), |omega| = 1 (§3.4)
+        vv = (v0 * v0).addcmul_(v1, v1).addcmul_(v2, v2).clamp_min_(1e-18)
+        dot = (om[0] * v0).addcmul_(om[1], v1).addcmul_(om[2], v2)
+        k = dot / vv
+        p0, p1, p2 = om[0] - k * v0, om[1] - k * v1, om[2] - k * v2    # omega minus its part along v
+        pv = (p0 * p0).addcmul_(p1, p1).addcmul_(p2, p2).mul_(vv).sqrt_()   # |omega x v|
         E = torch.atan2(pv, dot)
-        dpx = d01 + fy * (d23 - d01)                         # dp/dx
-        # d Delta / d p = -omega_perp / (|v| |omega_perp|): magnitude 1/|v|
-        gp = perp * (-1.0 / pv.clamp_min(1e-24))
-        g = torch.stack([(gp * dpx).sum(0), (gp * dpy).sum(0)], -1)
-        if len(rough):
-            g[rough] = 0.0
-            E[rough[t.nearest[rough] < 0]] = math.pi
-        return E, g, t.smooth
+        # d Delta / d p = -omega_perp / (|v| |omega_perp|), chained with dp/dx, dp/dy
+        sc = pv.clamp_min(1e-24).reciprocal_().neg_()
+        gx = (p0 * x0).addcmul_(p1, x1).addcmul_(p2, x2).mul_(sc)
+        gy = (p0 * y0).addcmul_(p1, y1).addcmul_(p2, y2).mul_(sc)
+        E = torch.where(defined, E, torch.full_like(E, math.pi))
+        if with_delta:
+            dl = torch.addcmul(torch.addcmul(C[12], C[13], fx), torch.addcmul(C[14], C[15], fx), fy)
+            return E, gx, gy, smooth, dl, defined
+        return E, gx, gy, smooth
 
 
 def specular_flow(w: torch.Tensor, n: torch.Tensor, c_new: torch.Tensor, eta: torch.Tensor | None,
                   q_d: torch.Tensor, Ws: torch.Tensor, delta: torch.Tensor, valid: torch.Tensor,
                   P_old: torch.Tensor, options: SpecularOptions | None = None,
-                  sampler: ops.Sampler | None = None, record_history: bool = True) -> SpecularResult:
+                  sampler: ops.Sampler | None = None, record_history: bool = True,
+                  quad: torch.Tensor | None = None) -> SpecularResult:
     """Vectorised specular search for M new-view pixels (all tensors on one device).
 
     w, n (M, 3): warped diffuse positions and normals; c_new (3,); eta (M,) IOR ratio for a
     refractive node or None for a reflective one; q_d (M, 2): diffuse-flow location in the old
     image; Ws (H, W, 3), delta (H, W), valid (H, W): the node's decoded positions, depth relative
     to the parent and validity; P_old (3, 4) old pixel projection; `sampler` an ops.Sampler of
-    (valid, delta, options.rel_tol) to reuse.
+    (valid, delta, options.rel_tol) and `quad` its quad_table(Ws, delta), to reuse per tree.
 
     The descent runs on the compacted set of still-active pixels: a pixel leaves it once its
     Delta is below 1e-5 rad (0.0006 deg, far below eps), its gradient is zero (a non-smooth
@@ -138,58 +184,69 @@ def specular_flow(w: torch.Tensor, n: torch.Tensor, c_new: torch.Tensor, eta: to
     ops.check(valid, tuple(Ws.shape[:2]), "valid")
     if eta is not None:
         ops.check(eta, (M,), "eta")
-    energy = _Energy(Ws, delta, valid, o.rel_tol, sampler)
+    energy = _Energy(Ws, delta, valid, o.rel_tol, sampler, quad)
     omega, ok = specular_directions(w, n, c_new, eta)
-    wT, omT = w.T.contiguous(), omega.T.contiguous()
+    wP, omP = w.T.contiguous().unbind(0), omega.T.contiguous().unbind(0)   # (M,) planes
     # initial guesses (§3.4, Fig. 6)
-    t_d = energy.sampler.taps(q_d)
-    E_d, g_d, s_d = energy(q_d, wT, omT, t_d)
-    d0, _, d_def = energy.sampler.sample(delta[..., None], q_d, t_d)
-    d0 = d0[:, 0]
+    qdx, qdy = q_d[:, 0].contiguous(), q_d[:, 1].contiguous()
+    E_d, gdx, gdy, _, d0, d_def = energy(qdx, qdy, wP, omP, with_delta=True)
     if bool(valid.any()):
         d0 = torch.where(d_def & (d0 > 0), d0, delta[valid].median())
     V = w + d0[:, None] * ops.normalize(w - c_new)
     q_s, _ = ops.project(P_old, V)
     q_s = torch.nan_to_num(q_s, nan=-1e4, posinf=1e4, neginf=-1e4).clamp(-1e4, 1e4)
-    E_s, g_s, s_s = energy(q_s, wT, omT)
+    qsx, qsy = q_s[:, 0].contiguous(), q_s[:, 1].contiguous()
+    E_s, gsx, gsy, _ = energy(qsx, qsy, wP, omP)
     den = E_d + E_s
     lam = torch.where(den > 0, 1 - E_d / den.clamp_min(1e-12), torch.full_like(den, 0.5))
-    q0 = lam[:, None] * q_d + (1 - lam[:, None]) * q_s
-    E0, g0, s0 = energy(q0, wT, omT)
+    qx, qy = torch.lerp(qsx, qdx, lam), torch.lerp(qsy, qdy, lam)   # lam q_d + (1 - lam) q_s
+    E, gx, gy, _ = energy(qx, qy, wP, omP)
     # start from the best of the three guesses (q0 unless a pure guess is better)
-    q, E, g = q0, E0, g0
-    for qq, EE, gg in ((q_d, E_d, g_d), (q_s, E_s, g_s)):
+    for ax, ay, EE, bx, by in ((qdx, qdy, E_d, gdx, gdy), (qsx, qsy, E_s, gsx, gsy)):
         better = EE < E
-        q = torch.where(better[:, None], qq, q)
-        g = torch.where(better[:, None], gg, g)
+        qx, qy = torch.where(better, ax, qx), torch.where(better, ay, qy)
+        gx, gy = torch.where(better, bx, gx), torch.where(better, by, gy)
         E = torch.where(better, EE, E)
-    s = torch.full_like(E, o.step_scale)
     hist = [E.clone()] if record_history else []
     converged = 1e-5
-    act = torch.nonzero((E > converged) & ((g * g).sum(-1) > 0)).squeeze(-1)
+    act = torch.nonzero((E > converged) & (gx * gx + gy * gy > 0)).squeeze(-1)
+    # compact state of the active pixels; written back when a pixel leaves the set
+    A = [qx[act], qy[act], E[act], gx[act], gy[act], torch.full((len(act),), o.step_scale, device=w.device)]
+    wa, oa = [x[act] for x in wP], [x[act] for x in omP]
     for _ in range(o.steps):
         if len(act):
-            qa, Ea, ga, sa = q[act], E[act], g[act], s[act]
-            gn2 = (ga * ga).sum(-1)
-            step = ga * (sa * Ea / gn2.clamp_min(1e-20))[:, None]      # Polyak step
-            L = (step * step).sum(-1).sqrt()
-            step = step * (o.max_step_px / L.clamp_min(1e-12)).clamp(max=1.0)[:, None]
-            cand = qa - step
-            E1, g1, s1 = energy(cand, wT[:, act], omT[:, act])
+            qax, qay, Ea, gax, gay, sa = A
+            gn2 = gax * gax + gay * gay
+            k = sa * Ea / gn2.clamp_min(1e-20)                     # Polyak step length factor
+            L = k * gn2.sqrt()
+            k = k * (o.max_step_px / L.clamp_min(1e-12)).clamp_(max=1.0)
+            cx, cy = qax - k * gax, qay - k * gay
+            E1, g1x, g1y, s1 = energy(cx, cy, wa, oa)
             # reject steps onto undefined pixels / depth discontinuities or uphill; shrink the step
             acc = s1 & (E1 < Ea)
-            q[act] = torch.where(acc[:, None], cand, qa)
-            g[act] = torch.where(acc[:, None], g1, ga)
+            qax, qay = torch.where(acc, cx, qax), torch.where(acc, cy, qay)
+            gax, gay = torch.where(acc, g1x, gax), torch.where(acc, g1y, gay)
             Ea = torch.where(acc, E1, Ea)
-            E[act] = Ea
-            s[act] = torch.where(acc, sa, sa * 0.5)
+            sa = torch.where(acc, sa, sa * 0.5)
+            A = [qax, qay, Ea, gax, gay, sa]
             # a pixel leaves the active set once converged, stuck (zero gradient) or when its
             # step fell below min_step_px (further steps cannot move it visibly)
-            moved = (L > o.min_step_px)
-            still = (Ea > converged) & moved & ((acc & ((g1 * g1).sum(-1) > 0)) | ~acc)
-            act = act[still]
+            still = (Ea > converged) & (L > o.min_step_px) & (~acc | (g1x * g1x + g1y * g1y > 0))
+            if record_history:
+                E[act] = Ea
+            if not bool(still.all()):
+                done = torch.nonzero(~still).squeeze(-1)
+                da = act[done]
+                qx[da], qy[da], E[da] = qax[done], qay[done], Ea[done]
+                keep = torch.nonzero(still).squeeze(-1)
+                act = act[keep]
+                A = [x[keep] for x in A]
+                wa, oa = [x[keep] for x in wa], [x[keep] for x in oa]
         if record_history:
             hist.append(E.clone())
+    if len(act):
+        qx[act], qy[act], E[act] = A[0], A[1], A[2]
+    q = torch.stack([qx, qy], -1)
     if o.snap_radius > 0:
         # discrete check (our addition, after the 10 steps): a pixel still above eps tests the
         # valid old pixels in a (2r+1)^2 window around its best location. The descent cannot

@@ -24,7 +24,7 @@ from .decode import DecodeOptions, Decoded, decode, eta_of
 from .diffuse import diffuse_flow, projection_matrix
 from .encoding import FRESNEL_DIELECTRIC, FRESNEL_NONE, FRESNEL_PANE, REFLECTIVE, RayTree
 from .fill import push_pull
-from .specular import SpecularOptions, specular_flow
+from .specular import SpecularOptions, quad_table, specular_flow
 
 
 @dataclass
@@ -134,18 +134,27 @@ def _sample_box(table: torch.Tensor, box, t: ops.Taps, W: int) -> torch.Tensor:
     return out
 
 
-def _node_tables(dec: Decoded, i: int, rel_tol: float):
+def _node_tables(dec: Decoded, i: int, rel_tol: float, div_tol: float = 0.0):
     """Node i cropped to the specular bounding box (Decoded.box): sampler, W_s, delta, valid,
-    rgb and the crop origin (x0, y0). Outside the box the node is invalid (with a margin), so
+    rgb, the crop origin (x0, y0) and the bilinear quad table of (W_s, delta) (specular.quad_table). Outside the box the node is invalid (with a margin), so
     searching / sampling in the crop is the same as in the full image."""
-    key = ("node", i, rel_tol)
+    key = ("node", i, rel_tol, div_tol)
     if key not in dec.cache:
         y0, y1, x0, x1 = dec.box
         c = (slice(y0, y1), slice(x0, x1))
         valid, delta = dec.valid[i][c].contiguous(), dec.depth[i][c].contiguous()
-        sampler = ops.Sampler(valid, delta, rel_tol)
-        dec.cache[key] = (sampler, dec.pos[i][c].contiguous(), delta, valid,
-                          sampler.chw(dec.rgb[i][c]), (x0, y0))
+        slack = None
+        if div_tol > 0:   # depth-discontinuity slack from the spread of the node's rays
+            d = dec.dirs[i][c].permute(2, 0, 1)[None]
+            dp = torch.nn.functional.pad(d, (0, 1, 0, 1), mode="replicate")[0]
+            h, w = valid.shape
+            ch1 = (dp[:, :h, :w] - dp[:, 1:, 1:]).square().sum(0)
+            ch2 = (dp[:, :h, 1:] - dp[:, 1:, :w]).square().sum(0)
+            slack = div_tol * torch.maximum(ch1, ch2).sqrt()   # chord ~ angle (radians)
+        sampler = ops.Sampler(valid, delta, rel_tol, slack=slack)
+        Ws = dec.pos[i][c].contiguous()
+        dec.cache[key] = (sampler, Ws, delta, valid, sampler.chw(dec.rgb[i][c]), (x0, y0),
+                          quad_table(Ws, delta))
     return dec.cache[key]
 
 
@@ -173,9 +182,9 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
     #    location (nearest valid tap across depth discontinuities), reusing the flow's taps
     sampler, table, bits_old, rgb0 = _root_tables(dec, o.rel_tol)
     flow = diffuse_flow(dec.pos[0], dec.valid[0], dec.depth[0], P_new, (Wn, Hn), o.fpi_eps, o.rel_tol,
-                        sampler=sampler)
+                        sampler=sampler, extra=rgb0)
     pix, taps = flow.pix, flow.taps
-    rgb_k, _, _ = sampler.sample(rgb0, None, taps)
+    rgb_k = flow.values   # the root radiance, read in the fixed-point step's bilinear pass
     near = taps.nearest.clamp_min(0)
     bits_k = bits_old[near]
     # only pixels whose first surface is specular need positions, normals, IOR, Fresnel
@@ -200,7 +209,7 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
     for i in range(1, n_nodes):
         t1 = time.perf_counter()
         p = int(tree.parent[i])
-        s_i, Ws_c, delta_c, valid_c, rgb_c, (x0, y0) = _node_tables(dec, i, o.specular.rel_tol)
+        s_i, Ws_c, delta_c, valid_c, rgb_c, (x0, y0), quad_c = _node_tables(dec, i, o.specular.rel_tol, o.specular.div_tol)
         off = torch.tensor([x0, y0], dtype=torch.float32, device=dev)
         reg = def_node[p] & (((bits_s >> i) & 1) > 0)
         ri = torch.nonzero(reg).squeeze(-1)
@@ -214,7 +223,7 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
             P_c[0] -= x0 * P_old[2]
             P_c[1] -= y0 * P_old[2]
             res = specular_flow(w, n, c_new, eta, q_node[0][ri] - off, Ws_c, delta_c, valid_c, P_c,
-                                o.specular, s_i, record_history)
+                                o.specular, s_i, record_history, quad_c)
             qc, dfn = res.q, res.defined
             if record_history:
                 pp = pix_s[ri]
@@ -327,7 +336,7 @@ def warp(tree: RayTree, camera, options: WarpOptions | None = None, device: str 
     with torch.inference_mode():   # per-tree tables (samplers, channel-first buffers), §3.3
         _root_tables(dec, o.rel_tol)
         for i in range(1, tree.n_nodes):
-            _node_tables(dec, i, o.specular.rel_tol)
+            _node_tables(dec, i, o.specular.rel_tol, o.specular.div_tol)
     tm["decode_tables"] = _sync_time(dec.device, t1)
     res = warp_decoded(dec, camera, o, record_history)
     res.timings = {**tm, **res.timings, "total": _sync_time(dec.device, t0)}
