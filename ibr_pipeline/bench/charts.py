@@ -40,8 +40,10 @@ def points(rows: list[dict], axis: str) -> list[tuple[str, float, float, str]]:
     """(label, x, quality, kind) for one chart. kind: 'ours' for every grid setting; for the
     `default` run also its baselines, scored by the evaluate stage on the same held-out views:
     'single' (no decomposition: its own render time, preprocessing without the reflection stage,
-    model without the layer textures) and 'oracle' (ground-truth geometry and layers: render-time
-    chart only, since it has no preprocessing or model of its own)."""
+    model without the layer textures), 'oracle' (ground-truth geometry and layers: render-time
+    chart only, since it has no preprocessing or model of its own) and 'naive' (nearest captured
+    view warped with the global mesh's depth, `render/naive.py`: its CPU ms/frame, preprocessing
+    = ingest + global_mesh, model = the global mesh per view)."""
     out = []
     for r in rows:
         if r.get("group") not in ("grid", "baseline"):
@@ -63,10 +65,15 @@ def points(rows: list[dict], axis: str) -> list[tuple[str, float, float, str]]:
             out.append(("single layer", xs, m["single_psnr"], "single"))
         if axis == "render" and x is not None and m.get("oracle_psnr") is not None:
             out.append(("oracle", x, m["oracle_psnr"], "oracle"))
+        xn = {"render": m.get("naive_ms"),
+              "preprocess": None if not secs else secs.get("ingest", 0.0) + secs.get("global_mesh", 0.0),
+              "size": r.get("naive_mb_per_view")}[axis]
+        if xn is not None and m.get("naive_psnr") is not None:
+            out.append(("naive warp", xn, m["naive_psnr"], "naive"))
     return out
 
 
-STYLE = {"ours": ("o", "C0"), "single": ("s", "C1"), "oracle": ("*", "C2")}
+STYLE = {"ours": ("o", "C0"), "single": ("s", "C1"), "oracle": ("*", "C2"), "naive": ("v", "C7")}
 
 
 def _scatter(rows: list[dict], axis: str, xlabel: str, path: Path, logx: bool = False) -> Path | None:
@@ -83,7 +90,8 @@ def _scatter(rows: list[dict], axis: str, xlabel: str, path: Path, logx: bool = 
         if sel:
             ax.scatter([p[1] for p in sel], [p[2] for p in sel], marker=marker, s=40, color=color,
                        label={"ours": "ours (settings)", "single": "single-layer baseline",
-                              "oracle": "oracle (GT geometry + layers)"}[kind])
+                              "oracle": "oracle (GT geometry + layers)",
+                              "naive": "naïve diffuse warp (G depth, nearest view)"}[kind])
     for label, x, y, _ in pts:
         ax.annotate(label, (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
     ours = [p for p in pts if p[3] == "ours"]

@@ -101,6 +101,10 @@ def model_size_bytes(ws: Path) -> dict:
     return sizes
 
 
+def _file_bytes(p: Path) -> int:
+    return p.stat().st_size if p.is_file() else 0
+
+
 def _render_ms(ws: Path, which: str) -> float | None:
     t = ws / "renders" / which / "timings.json"
     if not t.is_file():
@@ -190,6 +194,7 @@ def run_setting(s: Setting, scene: str, seed: int, base: tuple[int, int, int], o
             "render_ms_single": _render_ms(ws_path, "test_single"),
             "metrics": _metrics(ws_path), "dsrnet": dsr,
             "model_bytes": sizes, "mb_per_view": round(sum(sizes.values()) / n_views / 1e6, 4),
+            "naive_mb_per_view": round(_file_bytes(ws_path / "global" / "mesh.ply") / n_views / 1e6, 4),
             "fallbacks": _fallbacks(ws_path)}
 
 

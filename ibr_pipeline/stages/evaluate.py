@@ -6,6 +6,9 @@ ground truth. Methods compared on the same cameras:
   single   the same renderer with the decomposition off (renders/test_single; ~InsideOut)
   oracle   the same renderer on the representation built from GT depth and GT layers
            (`render/oracle.py`; synthetic inputs only) — the ceiling of the reconstruction stages
+  naive    the naïve diffuse warp (`render/naive.py`): the nearest captured image that sees each
+           pixel, warped with the global mesh's depth only (no per-view meshes, blending or
+           layers) — the floor; its ms/frame is measured here (numpy + open3d ray casting, CPU)
 PSNR/SSIM/FLIP (`metrics`) over the whole image and inside reflectors (held-out views: GT material
 with kr > 0 from gt/test/geom; leave-one-out views: GT beta > 0, or the reflection stage's beta when
 there is no GT). Temporal stability on the fly-through: mean absolute frame-to-frame change of
@@ -32,6 +35,8 @@ class EvaluateConfig(StageConfig):
     flip: bool = param(True, "compute FLIP (slowest metric)")
     oracle: bool = param(True, "render the GT-built oracle representation (synthetic inputs)")
     fps: float = param(24.0, "fly-through video frame rate", min=1.0, max=240.0)
+    naive: bool = param(True, "score the naïve diffuse-warp baseline (nearest captured view "
+                        "warped with the global mesh's depth; issue #10)")
 
 
 def _set_cameras(ctx: StageContext, s: str) -> dict:
@@ -60,6 +65,8 @@ def _source(ctx: StageContext, s: str) -> str:
 
 def inputs(ctx: StageContext) -> list[str]:
     keys = ["renders/test/cameras.json", "renders/test/timings.json"]
+    if ctx.config.naive and ctx.ws.path("global/mesh.ply").is_file():
+        keys += ["global/mesh.ply", "global/cameras.json"]
     for s in ("test", "test_single", "fly", "fly_single"):
         cams = _set_cameras(ctx, s)
         if not cams:
@@ -155,7 +162,9 @@ def run(ctx: StageContext) -> None:
     source = _source(ctx, "test")
     single = _set_cameras(ctx, "test_single")
     oracle = _oracle_model(ctx) if cfg.oracle and source in ("heldout", "leave_one_out") else None
-    rows = {"ours": [], "single": [], "oracle": []}
+    naive = _naive_model(ctx) if cfg.naive else None
+    naive_ms = []
+    rows = {"ours": [], "single": [], "oracle": [], "naive": []}
     per_view = []
     for i, (name, cam) in enumerate(test.items()):
         key = _gt_image_key(ctx, "test", name, source)
@@ -172,6 +181,10 @@ def run(ctx: StageContext) -> None:
         if oracle is not None:
             f = oracle.render(cam, exclude=(name,) if source == "leave_one_out" else ())
             imgs["oracle"] = np.clip(f.color, 0, 1)
+        if naive is not None:
+            img, _, ms = naive.render(cam, exclude=(name,) if source == "leave_one_out" else ())
+            imgs["naive"] = img
+            naive_ms.append(ms)
         for k, img in imgs.items():
             sc = _scores(ref, img, mask, cfg.flip)
             rows[k].append(sc)
@@ -185,9 +198,11 @@ def run(ctx: StageContext) -> None:
         oracle.release()
     methods = {k: mean_metrics(v) for k, v in rows.items() if v}
     summary = {k: v for k, v in methods["ours"].items()}
-    for k in ("single", "oracle"):
+    for k in ("single", "oracle", "naive"):
         for m, v in methods.get(k, {}).items():
             summary[f"{k}_{m}"] = v
+    if naive_ms:
+        summary["naive_ms"] = float(np.median(naive_ms))
     if "single" in methods and methods["ours"].get("psnr_mask") is not None:
         summary["reflector_gain_db"] = methods["ours"]["psnr_mask"] - methods["single"]["psnr_mask"]
     if "oracle" in methods:
@@ -211,13 +226,22 @@ def run(ctx: StageContext) -> None:
         write_mp4(ws.path("eval/fly.mp4"), frames, fps=cfg.fps)
     _chart(ws.path("eval/metrics.png"), methods)
     ws.write_json("eval/metrics.json", result)
-    log.info("evaluate: PSNR ours %.2f dB (reflectors %s), single-layer %s, oracle %s",
-             summary["psnr"], _fmt(summary.get("psnr_mask")), _fmt(summary.get("single_psnr")),
-             _fmt(summary.get("oracle_psnr")))
+    log.info("evaluate: PSNR ours %.2f dB (reflectors %s), single-layer %s, oracle %s, naive "
+             "warp %s", summary["psnr"], _fmt(summary.get("psnr_mask")),
+             _fmt(summary.get("single_psnr")), _fmt(summary.get("oracle_psnr")),
+             _fmt(summary.get("naive_psnr")))
 
 
 def _fmt(v) -> str:
     return "n/a" if v is None else f"{v:.2f} dB"
+
+
+def _naive_model(ctx: StageContext):
+    from ..render.naive import from_workspace
+    from .render_views import RenderViewsConfig
+    from ..config import build_config
+    cfg = build_config(RenderViewsConfig, "render_views", ctx.ws.config().get("render_views", {}))
+    return from_workspace(ctx.ws, lam=cfg.lam)
 
 
 def _oracle_model(ctx: StageContext):
@@ -247,7 +271,7 @@ def _chart(path: Path, methods: dict) -> None:
     for ax, (key, title) in zip(axes, groups):
         vals = [methods[m].get(key) for m in names]
         ax.bar(names, [np.nan if v is None else v for v in vals],
-               color=["tab:blue", "tab:orange", "tab:green"][:len(names)])
+               color=["tab:blue", "tab:orange", "tab:green", "tab:gray"][:len(names)])
         ax.set_title(title, fontsize=9)
         for j, v in enumerate(vals):
             if v is not None:
@@ -259,4 +283,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="1", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="2", run=run, inputs=inputs, outputs=outputs)

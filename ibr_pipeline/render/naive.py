@@ -1,0 +1,145 @@
+"""The naïve diffuse-warp baseline (issue #10): captured images warped with the surface depth only.
+
+For a new camera, every pixel's surface point comes from ray casting the global mesh G
+(`global/mesh.ply`); it takes the colour of the captured view nearest to the new camera by Xu et al.
+Eq. 14 that sees that point (depth test against that view's own ray-cast depth of G), falling back
+to the next-nearest views in Eq. 14 order; pixels no view sees are filled by the renderer's hole
+filling (`blend.fill_holes`). No per-view meshes, no depth-edge refinement, no view blending, no
+reflection layer: a reflection is pasted onto the reflector as if it were texture, and at the new
+viewpoint it sits where the old view saw it (what Lochmann et al. 2014 and Xu et al. §1 call a
+diffuse warp). It is the floor every refinement of the pipeline should lift.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..scene import Camera
+from . import raycast
+from .blend import fill_holes
+from .selection import view_distance
+
+DEPTH_TOL_REL = 0.02   # visibility: |z_k(x) - depth_k| within 2 % of depth, plus 1 cm
+DEPTH_TOL_ABS = 0.01
+MAX_VIEWS = 4          # nearest views tried per frame, in Eq. 14 order
+
+
+def bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(N, C) bilinear samples of an (H, W, C) image at pixel coordinates (u, v) (pixel centres at
+    integers, clamped at the border). numpy rather than cv2.remap: remap needs maps under 32767
+    pixels a side, and these are flat lists of points."""
+    H, W = image.shape[:2]
+    u = np.clip(np.asarray(u, dtype=np.float64), 0, W - 1)
+    v = np.clip(np.asarray(v, dtype=np.float64), 0, H - 1)
+    u0 = np.minimum(np.floor(u).astype(np.int64), W - 2) if W > 1 else np.zeros(len(u), np.int64)
+    v0 = np.minimum(np.floor(v).astype(np.int64), H - 2) if H > 1 else np.zeros(len(v), np.int64)
+    a = (u - u0)[:, None].astype(np.float32)
+    b = (v - v0)[:, None].astype(np.float32)
+    u1, v1 = np.minimum(u0 + 1, W - 1), np.minimum(v0 + 1, H - 1)
+    img = np.asarray(image, dtype=np.float32)
+    return ((1 - a) * (1 - b) * img[v0, u0] + a * (1 - b) * img[v0, u1]
+            + (1 - a) * b * img[v1, u0] + a * b * img[v1, u1])
+
+
+def visible_sample(camera: Camera, depth: np.ndarray, image: np.ndarray,
+                   points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Colours (N, 3) of world `points` (N, 3) seen by `camera` (bilinear), and (N,) bool: in front
+    of it, inside the image and not occluded (its ray-cast depth agrees with the point's depth)."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
+    if depth.shape != (camera.height, camera.width) or image.shape[:2] != depth.shape:
+        raise ValueError(f"depth {depth.shape} / image {image.shape} do not match camera "
+                         f"{camera.width}x{camera.height}")
+    xc = points @ camera.R.T + camera.t
+    z = xc[:, 2]
+    zs = np.maximum(z, 1e-9)
+    u = camera.K[0, 0] * xc[:, 0] / zs + camera.K[0, 2]
+    v = camera.K[1, 1] * xc[:, 1] / zs + camera.K[1, 2]
+    H, W = depth.shape
+    ok = (z > 1e-3) & (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
+    ui = np.clip(np.round(u), 0, W - 1).astype(np.int64)
+    vi = np.clip(np.round(v), 0, H - 1).astype(np.int64)
+    dk = depth[vi, ui]
+    ok &= (dk > 0) & (np.abs(dk - z) <= DEPTH_TOL_REL * z + DEPTH_TOL_ABS)
+    col = bilinear(image, u, v)
+    return col, ok
+
+
+class NaiveWarp:
+    """Renders new views by the naïve diffuse warp of `views` {name: (Camera, (H, W, 3) image)}
+    over the mesh (vertices (V, 3), faces (F, 3))."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, views: dict, lam: float = 0.1,
+                 max_views: int = MAX_VIEWS):
+        if not views:
+            raise ValueError("NaiveWarp needs at least one captured view")
+        self.scene = raycast.build_scene(vertices, faces)
+        self.views = dict(views)
+        self.lam = lam
+        self.max_views = max_views
+        self._depth: dict[str, np.ndarray] = {}
+        names = list(self.views)
+        self._names = names
+        self._axes = np.stack([self.views[n][0].viewing_direction for n in names])
+        self._centers = np.stack([self.views[n][0].center for n in names])
+
+    def _view_depth(self, name: str) -> np.ndarray:
+        if name not in self._depth:  # ray-cast once per view, on first use
+            self._depth[name] = raycast.render_depth(self.scene, self.views[name][0])
+        return self._depth[name]
+
+    def render(self, camera: Camera, exclude=()) -> tuple[np.ndarray, np.ndarray, float]:
+        """(H, W, 3) colour, (H, W) bool covered-by-a-view, and the frame's milliseconds (the
+        captured views' depth maps are preprocessing: ray-cast once, outside the timing)."""
+        dist = view_distance(self._axes, self._centers, camera.viewing_direction, camera.center,
+                             lam=self.lam)  # Eq. 14
+        order = [self._names[i] for i in np.argsort(dist) if self._names[i] not in set(exclude)]
+        for name in order[:self.max_views]:
+            self._view_depth(name)
+        t0 = time.perf_counter()
+        o, d = raycast.camera_rays(camera)
+        t = raycast.cast(self.scene, o, d)["t_hit"]
+        hit = np.isfinite(t)
+        pts = o[hit] + d[hit] * t[hit, None]
+        n = camera.height * camera.width
+        color = np.zeros((n, 3), np.float32)
+        covered = np.zeros(n, bool)
+        idx_hit = np.flatnonzero(hit)
+        todo = np.ones(len(idx_hit), bool)
+        for name in order[:self.max_views]:
+            if not todo.any():
+                break
+            cam_k, img_k = self.views[name]
+            col, ok = visible_sample(cam_k, self._view_depth(name), img_k, pts[todo])
+            sel = np.flatnonzero(todo)[ok]
+            color[idx_hit[sel]] = col[ok]
+            covered[idx_hit[sel]] = True
+            todo[sel] = False
+        img = color.reshape(camera.height, camera.width, 3)
+        cov = covered.reshape(camera.height, camera.width)
+        img = fill_holes(img, cov)
+        return np.clip(img, 0, 1), cov, (time.perf_counter() - t0) * 1e3
+
+
+def from_workspace(ws, lam: float = 0.1) -> NaiveWarp | None:
+    """The baseline over a workspace's global mesh and registered captured views (None when the
+    global mesh or the cameras are missing)."""
+    from ..io.images import read_image
+    from ..io.mesh import read_ply
+    from ..stages.common import registered_cameras
+
+    mesh_path = ws.path("global/mesh.ply")
+    if not mesh_path.is_file():
+        return None
+    cams = registered_cameras(ws)
+    if not cams:
+        return None
+    scene = ws.scene()
+    views = {}
+    for name, cam in cams.items():
+        img = read_image(ws.path(scene.view(name).image))
+        views[name] = (cam, img[..., :3])
+    mesh = read_ply(mesh_path)
+    return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam)
