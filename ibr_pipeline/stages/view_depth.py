@@ -31,11 +31,22 @@ class ViewDepthConfig(StageConfig):
     num_depths: int = param(24, "plane-sweep hypotheses per pixel in the search band", min=4, max=256)
     window: int = param(7, "NCC window of the plane sweep, pixels (odd)", min=3, max=21)
     mvs_agree_rel: float = param(0.05, "keep an MVS depth only where the photometric and geometric "
-                                 "estimates agree within this fraction (Xu §4.2.2: 5 %)", min=0.001, max=1.0)
+                                 "estimates agree within this fraction (Xu §4.2.2: 5 per cent)", min=0.001, max=1.0)
     mvs_min_consistent: int = param(1, "source views that must agree (geometric stage)", min=1, max=16)
+    mvs_check: str = param("near", "geometric check of the MVS depth against G in the source views: "
+                           "'near' = a G depth within mvs_agree_rel within mvs_check_radius px of "
+                           "the projection (tolerates G's misplaced edges); 'roundtrip' = strict "
+                           "forward-backward check (version 1)", choices=("near", "roundtrip"))
+    mvs_check_radius: int = param(1, "pixel tolerance of the 'near' check", min=0, max=8)
+    mvs_min_change: float = param(1.5, "keep G's depth where the MVS depth differs from it by at most "
+                                  "this many Eq. 1 lambdas (MVS is noisier than G on surfaces); "
+                                  "0 = off", min=0.0, max=100.0)
+    mvs_edge_guard: int = param(3, "drop MVS depths within this many pixels of an Eq. 1 edge inside "
+                                "the MVS depth (NCC windows straddling two surfaces; Eq. 2 refills "
+                                "them along colour edges); 0 = off", min=0, max=32)
     neighbours: int = param(4, "Eq. 2: geodesically nearest pixels outside the mask (Xu: 4)", min=1, max=16)
     cost_base: float = param(0.05, "geodesic cost per pixel step on a flat colour region", min=1e-4, max=10.0)
-    cost_edge: float = param(5.0, "extra geodesic cost per pixel step across a full-strength colour "
+    cost_edge: float = param(15.0, "extra geodesic cost per pixel step across a full-strength colour "
                              "edge (w = exp(-d_g), Eq. 2)", min=0.0, max=1000.0)
     rounded_steps: bool = param(True, "also refine steps G has rounded into ramps (Eq. 1's planar "
                                 "distance between pixels 2s apart, parallel planes, at a colour "
@@ -176,7 +187,9 @@ def _run(ctx: StageContext, view: str) -> None:
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
                             min_consistent=cfg.mvs_min_consistent, agree_rel=cfg.mvs_agree_rel,
-                            device=cfg.device)
+                            device=cfg.device, check=cfg.mvs_check, check_radius=cfg.mvs_check_radius,
+                            min_change=cfg.mvs_min_change, guard_px=cfg.mvs_edge_guard,
+                            lambda_rel=cfg.lambda_rel)
         accepted = res.accepted
         depth1[accepted] = res.depth[accepted]
         mvs_stats.update(res.stats, sources_used=src)
@@ -213,6 +226,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="1", run=run, per_view=True,
+              config=ViewDepthConfig, version="2", run=run, per_view=True,
               inputs=(REGISTERED_CAMERAS, "global/mesh.ply"), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)

@@ -22,7 +22,7 @@ class ViewMeshConfig(StageConfig):
                                       min=100, max=10_000_000)
     min_vertices: int = param(200, "never simplify below this many vertices", min=3, max=1_000_000)
     tol_score: float = param(0.002, "adaptive target: accept a coarser mesh while its mean relative "
-                             "depth error (misses count 5 %) grows by at most this", min=0.0, max=0.05)
+                             "depth error (misses count 5 per cent) grows by at most this", min=0.0, max=0.05)
     lambda_rel: float = param(0.01, "Eq. 1 threshold for the cuts (Xu §4.2.1: 0.01)", min=1e-4, max=0.5)
     agg: float = param(7.0, "fast-simplification aggressiveness", min=0.0, max=10.0)
 
