@@ -1,7 +1,8 @@
 """Benchmark of stage `reflection` (issue #6) against synthetic ground truth.
 
     .venv/bin/python -m ibr_pipeline.bench.reflection [--scene tiny|mirror_room] [--out DIR]
-        [--repeats 3] [--scale 1.0]
+        [--repeats 3] [--scale 1.0] [--ablation [--rows 0,4]] [--heldout] [--timing]
+        [--depth-noise 0.01]
 
 Builds a workspace whose upstream outputs are the exact synthetic geometry (global/cameras.json,
 global/mesh.ply = gt/mesh.ply, views/<v>/depth.npy from gt/geom, a grid mesh.ply), runs the stage
@@ -16,6 +17,7 @@ import argparse
 import json
 import shutil
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +25,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 
 
-def make_gt_workspace(scene: Path, ws_dir: Path, mesh_step: int = 4):
-    """A workspace over `scene` whose global_mesh / view_depth / view_mesh outputs are exact GT."""
+def make_gt_workspace(scene: Path, ws_dir: Path, mesh_step: int = 4, depth_noise: float = 0.0):
+    """A workspace over `scene` whose global_mesh / view_depth / view_mesh outputs are exact GT.
+
+    depth_noise > 0: each view's depth is multiplied by 1 + a smooth random field (std
+    `depth_noise`, correlation ~1/8 of the image) -- MVS-like low-frequency errors, so that the
+    surface flows w(u, M0) are misaligned by a few pixels (what the ARAP warp of Eq. 5 corrects)."""
     from ..geometry.planes import depth_points, grid_mesh
     from ..io.mesh import Mesh, write_ply
     from ..pipeline import load_configs, run, select_stages
@@ -44,11 +50,23 @@ def make_gt_workspace(scene: Path, ws_dir: Path, mesh_step: int = 4):
     for name, cam in cams.items():
         stem = Path(name).stem
         depth = np.load(scene / "gt" / "geom" / f"{stem}.npz")["depth"].astype(np.float32)
+        if depth_noise > 0:
+            depth = (depth * (1 + _smooth_noise(depth.shape, depth_noise,
+                                                zlib.crc32(stem.encode())))).astype(np.float32)
         with ws.atomic_write(ws.view_file(name, "depth.npy")) as f:
             np.save(f, depth)
         v, fc = grid_mesh(depth_points(cam, depth), depth, step=mesh_step)
         write_ply(ws.path(ws.view_file(name, "mesh.ply")), Mesh(v, fc))
     return ws
+
+
+def _smooth_noise(shape, std: float, seed: int) -> np.ndarray:
+    import cv2
+    rng = np.random.default_rng(seed)
+    H, W = shape
+    small = rng.standard_normal((max(2, H // 40), max(2, W // 40))).astype(np.float32)
+    f = cv2.resize(small, (W, H), interpolation=cv2.INTER_CUBIC)
+    return std * f / max(float(f.std()), 1e-9)
 
 
 def run_stage(ws, overrides: dict | None = None, force: bool = False):
@@ -116,6 +134,193 @@ def plane_accuracy(ws, scene: Path) -> list[dict]:
         rows.append(best or {"reflector": g["name"], "detected": None})
     return rows
 
+# --- ablation and held-out re-rendering (issue #6 accuracy items 3 and 4) -----------------------
+# Both call the stage's own per-reflector decomposition (`stages.reflection._decompose_reflector`)
+# on a Loader of the workspace, in float (no 8-bit PNG round trip), one config per row.
+ABLATION = [  # cumulative rows of the issue's table, then the additions of this implementation
+    ("init only (Eq. 6, no warp)", {"use_warp": False, "outer_iterations": 0, "use_prior": False}),
+    ("+ optimisation (Eq. 7)", {"use_warp": False, "use_prior": False}),
+    ("+ multi-view consistency (Eqs. 11-13)", {"use_warp": False, "use_prior": False,
+                                               "multiview": True}),
+    ("+ ARAP warp (Eqs. 4-5) = paper", {"use_prior": False, "multiview": True}),
+    ("init only + ARAP warp", {"outer_iterations": 0, "use_prior": False}),
+    ("paper without multi-view", {"use_prior": False}),
+    ("+ reflected-scene prior, multi-view", {"multiview": True}),
+    ("stage defaults (prior, no multi-view)", {}),
+]
+
+
+def _loader(ws, over: dict):
+    from ..config import build_config
+    from ..runner import StageContext
+    from ..stages.reflection import Loader, ReflectionConfig, get_planes
+    ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", over),
+                       ws.scene())
+    loader = Loader(ctx)
+    loader.reflectors = get_planes(ctx, loader)["reflectors"]
+    return ctx, loader
+
+
+def _forget_passes(loader) -> None:
+    for k in [k for k in loader._geo if k[0] == "first"]:
+        del loader._geo[k]
+
+
+def _psnr(a, b) -> float:
+    mse = float(np.mean((np.asarray(a) - np.asarray(b)) ** 2))
+    return float("inf") if mse == 0 else float(10 * np.log10(1 / mse))
+
+
+def ablation(ws, scene: Path, base: dict, rows=None) -> list[dict]:
+    """PSNR of I0 and beta*I1 vs the GT layers inside each (non-mirror) reflector's mask, median
+    over the views, for each configuration row (`ABLATION`). Mirrors are exact in every row."""
+    from ..config import build_config
+    from ..stages.reflection import ReflectionConfig, _decompose_reflector, options
+    _, loader = _loader(ws, base)
+    out = []
+    for label, over in rows or ABLATION:
+        cfg = build_config(ReflectionConfig, "reflection", base, over)
+        opts = options(cfg)
+        _forget_passes(loader)
+        per: dict = {}
+        c0, t0 = time.process_time(), time.perf_counter()
+        for v in loader.names:
+            g0, g1, gb = read_gt(scene, v)
+            for refl in loader.reflectors:
+                if refl.get("beta") == 1.0 or loader.mask(v, refl).sum() < cfg.min_mask_pixels:
+                    continue
+                info = _decompose_reflector(loader, v, refl, opts, cfg)
+                d = per.setdefault(refl["name"], {"I0": [], "betaI1": [], "discarded": 0,
+                                                  "warp": []})
+                for h in info.get("history", []):  # Eq. 5 energy after / before the GN warp
+                    for e in (h.get("warp_energy") or {}).values():
+                        if e and e[0] > 0:
+                            d["warp"].append(e[-1] / e[0])
+                if "discarded" in info:
+                    d["discarded"] += 1
+                    continue
+                m = info["mask"] & (gb > 0)
+                if m.sum() < 50:
+                    continue
+                I, R = info["geom"].image, info["R"]
+                d["I0"].append(_psnr((I - R)[m], g0[m]))
+                d["betaI1"].append(_psnr(R[m], (gb[..., None] * g1)[m]))
+        row = {"row": label, "config": over, "seconds": time.perf_counter() - t0,
+               "cpu_seconds": time.process_time() - c0}
+        for name, d in per.items():
+            row[name] = {"I0_psnr": float(np.median(d["I0"])) if d["I0"] else None,
+                         "betaI1_psnr": float(np.median(d["betaI1"])) if d["betaI1"] else None,
+                         "I0_per_view": [round(x, 2) for x in d["I0"]], "views": len(d["I0"]),
+                         "warp_energy_ratio": float(np.median(d["warp"])) if d["warp"] else None,
+                         "discarded": d["discarded"]}
+        out.append(row)
+        print(json.dumps({k: v for k, v in row.items() if k != "config"}), flush=True)
+    return out
+
+
+def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
+    """Predict the held-out view t's reflector pixels from neighbour k. Layered: I0_k at
+    a = w(u, M0) (surface points of t projected into k) + R_k = beta I1_k at b = w(u, M1)
+    (t's mirror-world points projected into k), as in Eq. 8; unsplit: I_k(a). `layers` =
+    (I0_k, R_k) of another source (GT). Returns (target, layered, unsplit, extra) on the pixels
+    where both warps are valid, or None."""
+    from ..geometry.decompose import _bilinear, _nearest, depth_consistent, project
+    sel = tg.mask & (tg.D1 > 0)
+    a, za = project(kg.camera, tg.X0[sel])
+    b, zb = project(kg.camera, tg.X1[sel])
+    ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
+    ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
+    if ok.sum() < 50:
+        return None
+    a, b = a[ok], b[ok]
+    lay = _bilinear(kg.image - R_k, a) + _bilinear(R_k, b)
+    extra = None if layers is None else _bilinear(layers[0], a) + _bilinear(layers[1], b)
+    return tg.image[sel][ok], lay, _bilinear(kg.image, a), extra, float(ok.mean())
+
+
+def heldout(ws, scene: Path, base: dict, neighbours: int = 2) -> dict:
+    """Leave-one-out re-rendering: every capture view t that sees a reflector is held out (the
+    decompositions of its nearest views k are recomputed without t: t is neither a neighbour nor
+    a prior source), t's reflector pixels are predicted from k's layers and from k's unsplit
+    image warped with the surface depth, and compared with t's own image (PSNR inside the mask,
+    pixels where both warps are valid). Also: the same prediction from k's GT layers."""
+    from ..config import build_config
+    from ..geometry.decompose import pose_distance
+    from ..stages.reflection import ReflectionConfig, _decompose_reflector, options
+    _, loader = _loader(ws, base)
+    cfg = build_config(ReflectionConfig, "reflection", base)
+    opts = options(cfg)
+    names = list(loader.names)
+    per: dict = {}
+    t0 = time.perf_counter()
+    for refl in loader.reflectors:
+        seen = [n for n in names if loader.mask(n, refl).sum() >= cfg.min_mask_pixels]
+        for t in seen:
+            tg = loader.geom(t, refl)
+            loader.names = [n for n in names if n != t]
+            _forget_passes(loader)
+            used = 0
+            for k in sorted((k for k in seen if k != t),
+                            key=lambda k: pose_distance(tg.camera, loader.geom(k, refl).camera)):
+                if used >= neighbours:
+                    break
+                info = _decompose_reflector(loader, k, refl, opts, cfg)
+                if "discarded" in info:
+                    continue
+                kg = info["geom"]
+                g0, g1, gb = read_gt(scene, k)
+                got = rerender(tg, kg, info["R"], opts.visibility_tol,
+                               layers=(g0, gb[..., None] * g1))
+                if got is None:
+                    continue
+                used += 1
+                tgt, lay, uns, gtl, cover = got
+                d = per.setdefault(refl["name"], {"pairs": [], "se": np.zeros(3), "n": 0})
+                d["pairs"].append({"heldout": t, "from": k, "pixels": len(tgt), "coverage": cover,
+                                   "layers": _psnr(lay, tgt), "unsplit": _psnr(uns, tgt),
+                                   "gt_layers": _psnr(gtl, tgt)})
+                d["se"] += [((x - tgt) ** 2).mean(1).sum() for x in (lay, uns, gtl)]
+                d["n"] += len(tgt)
+    loader.names = names
+    out = {"seconds": time.perf_counter() - t0, "neighbours_per_view": neighbours}
+    for name, d in per.items():
+        ps = d["pairs"]
+        pooled = [float(10 * np.log10(d["n"] / max(se, 1e-30))) for se in d["se"]]
+        out[name] = {"pairs": len(ps),
+                     "median_layers_psnr": float(np.median([p["layers"] for p in ps])),
+                     "median_unsplit_psnr": float(np.median([p["unsplit"] for p in ps])),
+                     "median_gain_db": float(np.median([p["layers"] - p["unsplit"] for p in ps])),
+                     "median_gt_layers_psnr": float(np.median([p["gt_layers"] for p in ps])),
+                     "pooled_layers_psnr": pooled[0], "pooled_unsplit_psnr": pooled[1],
+                     "pooled_gt_layers_psnr": pooled[2], "per_pair": ps}
+    return out
+
+
+def timing(ws, base: dict) -> dict:
+    """Seconds per view of the stage's `run` in one process, views in order (like one worker:
+    the Loader cache is shared, so later views reuse the masks / mirror points of earlier ones).
+    Wall and CPU (process) seconds; reflective views = those that wrote I0.png."""
+    from ..config import build_config
+    from ..runner import StageContext
+    from ..stages.reflection import ReflectionConfig
+    from ..stages.reflection import run as run_view
+    ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", base),
+                       ws.scene())
+    from ..stages.common import registered_views
+    rows = []
+    for v in registered_views(ctx):
+        c0, t0 = time.process_time(), time.perf_counter()
+        run_view(ctx, v)
+        rows.append({"view": v, "wall": time.perf_counter() - t0, "cpu": time.process_time() - c0,
+                     "reflective": ws.path(ws.view_file(v, "I0.png")).is_file()})
+    refl = [r for r in rows if r["reflective"]]
+    plain = [r for r in rows if not r["reflective"]]
+    med = (lambda rs, k: float(np.median([r[k] for r in rs])) if rs else None)  # noqa: E731
+    return {"per_view": rows, "reflective_views": len(refl),
+            "median_wall_reflective": med(refl, "wall"), "median_cpu_reflective": med(refl, "cpu"),
+            "max_wall_reflective": max((r["wall"] for r in refl), default=None),
+            "median_wall_plain": med(plain, "wall"), "first_view_wall": rows[0]["wall"]}
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.reflection")
@@ -132,6 +337,15 @@ def main(argv=None) -> int:
     ap.add_argument("--workspace", type=Path, help="score this existing workspace (reflection "
                     "already run, e.g. the demo's out/demo) instead of building one from ground "
                     "truth; --scene is its input folder (default: the sample)")
+    ap.add_argument("--ablation", action="store_true", help="the ablation table (ABLATION rows)")
+    ap.add_argument("--heldout", action="store_true",
+                    help="leave-one-out re-rendering of reflector pixels: layers vs unsplit image")
+    ap.add_argument("--timing", action="store_true",
+                    help="seconds per view of the stage's run, in-process (wall and CPU)")
+    ap.add_argument("--rows", help="ablation rows to run: comma-separated indices into ABLATION")
+    ap.add_argument("--heldout-neighbours", type=int, default=2)
+    ap.add_argument("--depth-noise", type=float, default=0.0,
+                    help="smooth relative depth error of the GT workspace (MVS-like), e.g. 0.01")
     args = ap.parse_args(argv)
     if args.workspace is not None:
         return _score_workspace(args)
@@ -147,8 +361,21 @@ def main(argv=None) -> int:
     ws_dir = args.out / "ws"
     if ws_dir.exists():
         shutil.rmtree(ws_dir)
-    ws = make_gt_workspace(scene, ws_dir)
-    result: dict = {"scene": str(scene), "work_scale": args.scale}
+    ws = make_gt_workspace(scene, ws_dir, depth_noise=args.depth_noise)
+    result: dict = {"scene": str(scene), "work_scale": args.scale, "depth_noise": args.depth_noise}
+    if args.ablation or args.heldout or args.timing:
+        base = {"work_scale": args.scale, "detect": "off"}
+        if args.ablation:
+            rows = ([ABLATION[int(i)] for i in args.rows.split(",")] if args.rows else None)
+            result["ablation"] = ablation(ws, scene, base, rows)
+        if args.heldout:
+            result["heldout"] = heldout(ws, scene, base, args.heldout_neighbours)
+        if args.timing:
+            result["timing"] = timing(ws, {"work_scale": args.scale})
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
+        print(json.dumps(result, indent=1))
+        return 0
     t0 = time.perf_counter()
     over = {"work_scale": args.scale, "multiview": args.multiview}
     if args.no_user_reflectors:

@@ -73,6 +73,8 @@ class DecomposeOptions:
     saturation: float = 0.98  # highlights: pixels with a channel >= this are left out of E_d
     visibility_tol: float = 0.05  # relative depth tolerance of the occlusion tests
     cg_iterations: int = 150  # preconditioned CG iterations of one image-step solve
+    resolve_iterations: int = 50  # CG iterations of each warm-started active-set re-solve
+    pose_samples: int = 20000  # data points used by the (R, T) LM steps (deterministic stride)
     lambda_scene: float = 0.5  # weight of the reflected-scene colour prior (reflection_prior.py)
 
 
@@ -348,9 +350,9 @@ class Problem:
         w1 = np.exp(-np.abs(self.D @ x).sum(1))
         return w0, w1
 
-    def b_positions(self, pose, i):
+    def b_positions(self, pose, i, sub=None):
         """b_q with M1 moved by (R, T): R^T (X - c - T) + c projected into the reference."""
-        X = self.terms[i].X1
+        X = self.terms[i].X1 if sub is None else self.terms[i].X1[sub]
         Rm = rodrigues(pose[:3])
         Xm = (X - self.centre - pose[3:]) @ Rm + self.centre
         cam = self.ref.camera
@@ -431,8 +433,10 @@ class Problem:
         Hr = Hm.tocsr()
         x = np.clip(x0, 0, hi)
         free = np.ones_like(x, bool)
-        for _ in range(3):  # active set: variables at a violated bound are fixed there
-            x = _block_pcg(Hr, g, x, free, iterations=o.cg_iterations)
+        for it in range(3):  # active set: variables at a violated bound are fixed there
+            # re-solves start from the previous solution: fewer iterations (speed)
+            x = _block_pcg(Hr, g, x, free,
+                           iterations=o.cg_iterations if it == 0 else o.resolve_iterations)
             viol = ((x < 0) | (x > hi)) & free
             if not viol.any():
                 break
@@ -453,14 +457,20 @@ class Problem:
             return
         import cv2
         x = self._x(R)
-        base = np.concatenate([self.Sa_I[i] - bilinear_matrix(t.a, self.W, self.H)[:, self.flat] @ x
-                               - t.target for i, t in enumerate(self.terms)]).reshape(-1)
+        # 6 unknowns: a deterministic subset of the data points suffices for the LM steps (speed);
+        # the step is accepted on the full energy below
+        n_all = sum(len(t.target) for t in self.terms)
+        stride = max(1, -(-n_all // max(self.opts.pose_samples, 1)))
+        sub = [np.arange(0, len(t.target), stride) for t in self.terms]
+        base = np.concatenate([
+            self.Sa_I[i][s] - bilinear_matrix(t.a[s], self.W, self.H)[:, self.flat] @ x - t.target[s]
+            for i, (t, s) in enumerate(zip(self.terms, sub))]).reshape(-1)
         R32 = R.astype(np.float32)
         gx = np.stack([cv2.Sobel(R32[..., c], cv2.CV_32F, 1, 0, ksize=3) / 8 for c in range(3)], -1)
         gy = np.stack([cv2.Sobel(R32[..., c], cv2.CV_32F, 0, 1, ksize=3) / 8 for c in range(3)], -1)
 
         def bpos(p):
-            return np.concatenate([self.b_positions(p, i) for i in range(len(self.terms))])
+            return np.concatenate([self.b_positions(p, i, sub[i]) for i in range(len(self.terms))])
 
         def res(b):
             return base + _bilinear(R, b).reshape(-1)

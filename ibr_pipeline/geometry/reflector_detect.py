@@ -8,12 +8,21 @@ warp (small photometric error); a reflector is not, because its reflection moves
 scene. The score of a candidate is the median over views of the median absolute surface-warp error
 on its pixels; `mirror_ratio` (mirror-warp error / surface-warp error) tells a mirror (reflection
 only, ratio << 1) from a glossy surface (texture + reflection, ratio >= 1).
+
+A weak reflector (the polished table top, beta 0.15) is not found by that error alone: its
+surface-warp error is at the level of diffuse planes (texture resampling). `reflectance_cue` uses
+the image formation model (Eq. 3) instead: for a surface point x seen by views k and k', the
+surface layer cancels in the difference, I_k(u) - I_k'(w(u, M0)) = beta (C_k(u) - C_k'(w(u, M0))),
+where C is the colour of the reflected scene point (mirror(X1), seen directly by other captures:
+reflection_prior.py). The least-squares beta and the correlation of the two differences tell a
+reflector (beta > 0, correlated) from a diffuse plane (beta ~ 0, uncorrelated), and estimate its
+reflectance.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .decompose import ViewGeom, _sample_np, depth_consistent, pose_distance, project
+from .decompose import ViewGeom, _nearest, _sample_np, depth_consistent, pose_distance, project
 
 
 def warp_errors(ref: ViewGeom, nb: ViewGeom, tol: float = 0.05) -> tuple[float, float, int]:
@@ -56,9 +65,49 @@ def score_candidate(views: list[ViewGeom], neighbours: int = 2, tol: float = 0.0
             "pairs": counts}
 
 
-def is_reflective(score: dict, threshold: float, min_pairs: int = 1) -> bool:
-    """A plane whose surface warp leaves a median error above `threshold` over at least
-    `min_pairs` view pairs is a reflector (one or two pairs are too weak: a wall at the edge of two
-    views with depth errors scored like a reflector on the real workspace)."""
-    return (score.get("surface_error") is not None and score["surface_error"] > threshold
-            and score.get("pairs", 0) >= min_pairs)
+def is_reflective(score: dict, threshold: float, min_pairs: int = 1, min_beta: float | None = None,
+                  min_corr: float = 0.25) -> bool:
+    """A plane scored on at least `min_pairs` view pairs (one or two pairs are too weak: a wall at
+    the edge of two views with depth errors scored like a reflector on the real workspace) is a
+    reflector when its surface warp leaves a median error above `threshold`, or (`min_beta` given)
+    when the Eq. 3 fit of `reflectance_cue` (keys fit_beta, fit_corr) gives beta >= min_beta with
+    a correlation >= min_corr."""
+    if score.get("pairs", 0) < min_pairs:
+        return False
+    if score.get("surface_error") is not None and score["surface_error"] > threshold:
+        return True
+    b, c = score.get("fit_beta"), score.get("fit_corr")
+    return min_beta is not None and b is not None and c is not None and b >= min_beta and c >= min_corr
+
+
+def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, tol: float = 0.05,
+                    saturation: float = 0.98) -> dict:
+    """Fit Eq. 3's beta from view differences (module docstring). colours: view name -> (H, W, 3)
+    reflected-scene colour C (NaN where unknown). Returns {beta, corr, pixels}: least-squares
+    beta = <dI, dC> / <dC, dC> and the correlation of dI and dC over all pairs and channels."""
+    dI, dC = [], []
+    for v in views:
+        Cv = colours.get(v.name)
+        if Cv is None or v.mask.sum() < 50:
+            continue
+        sel = v.mask & (v.D1 > 0) & np.all(np.isfinite(Cv), axis=2) & ~np.any(v.image >= saturation, axis=2)
+        others = sorted((o for o in views if o is not v and o.name in colours and o.mask.sum() >= 50),
+                        key=lambda o: pose_distance(v.camera, o.camera))[:neighbours]
+        for o in others:
+            p0, z0 = project(o.camera, v.X0)
+            ok = sel & depth_consistent(o.depth, p0, z0, tol) & _nearest(o.mask, p0, False)[0]
+            Co = _nearest(colours[o.name], p0, np.nan)[0]
+            Io = _sample_np(o.image, p0)
+            ok &= np.all(np.isfinite(Co), axis=2) & ~np.any(Io >= saturation, axis=2)
+            if ok.sum() < 20:
+                continue
+            dI.append((v.image - Io)[ok].reshape(-1))
+            dC.append((Cv - Co)[ok].reshape(-1))
+    if not dI:
+        return {"beta": None, "corr": None, "pixels": 0}
+    dI, dC = np.concatenate(dI), np.concatenate(dC)
+    cc = float(dC @ dC)
+    if cc < 1e-9:
+        return {"beta": None, "corr": None, "pixels": len(dI) // 3}
+    corr = float(dI @ dC / np.sqrt(max(float(dI @ dI), 1e-30) * cc))
+    return {"beta": float(dI @ dC / cc), "corr": corr, "pixels": len(dI) // 3}

@@ -35,6 +35,11 @@ class ReflectionConfig(StageConfig):
     max_planes: int = param(30, "RANSAC planes extracted from G (detection candidates)", min=1, max=500)
     detect_threshold: float = param(0.02, "median surface-warp error above which a plane is a "
                                     "reflector (linear intensity)", min=1e-4, max=1.0)
+    detect_beta: float = param(0.05, "a plane whose Eq. 3 reflectance fit from view differences "
+                               "(reflector_detect.reflectance_cue) is at least this, with "
+                               "correlation >= detect_corr, is a reflector (weak reflectors); "
+                               "0 = off", min=0.0, max=1.0)
+    detect_corr: float = param(0.25, "see detect_beta", min=0.0, max=1.0)
     detect_min_pairs: int = param(4, "view pairs a detected reflector must be scored on",
                                   min=1, max=1000)
     mirror_ratio: float = param(0.5, "mirror-warp / surface-warp error below which a detected "
@@ -238,6 +243,7 @@ def _fingerprint(ctx) -> str:
     h.update(json.dumps([cfg.use_user_reflectors, detect_enabled(ctx), cfg.detect_min_pairs,
                          cfg.min_gap, cfg.ransac_distance,
                          cfg.detect_threshold, cfg.mirror_ratio, cfg.work_scale,
+                         cfg.detect_beta, cfg.detect_corr,
                          cfg.min_mask_pixels]).encode())
     if detect_enabled(ctx):
         for v in registered_views(ctx):
@@ -267,7 +273,7 @@ def compute_planes(ctx, loader: Loader) -> dict:
     import numpy as np
 
     from ..geometry.planes import ransac_planes
-    from ..geometry.reflector_detect import is_reflective, score_candidate
+    from ..geometry.reflector_detect import is_reflective, reflectance_cue, score_candidate
     cfg = ctx.config
     user = []
     if cfg.use_user_reflectors and ctx.ws.exists("input/reflectors.json"):
@@ -298,12 +304,18 @@ def compute_planes(ctx, loader: Loader) -> dict:
                 if loader.mask(v, cand).sum() >= cfg.min_mask_pixels:
                     views.append(loader.geom(v, cand))
             score = score_candidate(views) if len(views) >= 2 else {"surface_error": None}
+            if len(views) >= 2 and cfg.detect_beta > 0:  # Eq. 3 fit (weak reflectors)
+                cols = {g.name: loader.prior(g.name, dict(cand, beta=1.0), [cand]) for g in views}
+                score.update({f"fit_{k}": v for k, v in reflectance_cue(views, cols).items()})
             cand["score"] = score
             cand["views"] = len(views)
             candidates.append({k: cand[k] for k in ("name", "plane", "score", "views")})
-            if is_reflective(score, cfg.detect_threshold, cfg.detect_min_pairs):
+            if is_reflective(score, cfg.detect_threshold, cfg.detect_min_pairs,
+                             cfg.detect_beta or None, cfg.detect_corr):
                 if score.get("mirror_ratio") is not None and score["mirror_ratio"] < cfg.mirror_ratio:
                     cand["beta"] = 1.0  # a mirror (§4.3.3 special case)
+                elif (score.get("fit_beta") or 0) > 0:  # the fitted reflectance (Eq. 3)
+                    cand["beta"] = round(float(np.clip(score["fit_beta"], 0.01, 0.99)), 4)
                 cand["source"] = "detected"
                 detected.append(cand)
     merged = list(user)  # user planes win; among detections the best-supported piece wins
@@ -465,6 +477,6 @@ def run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",
-              config=ReflectionConfig, version="2", run=run, per_view=True,
+              config=ReflectionConfig, version="3", run=run, per_view=True,
               inputs=inputs, view_inputs=view_inputs, view_outputs=view_outputs,
               views=registered_views)
