@@ -7,7 +7,8 @@
   gt/mesh.ply (mirror-world points excluded from precision and reported separately), fusion ms/frame.
 * mvs: poses given, no depth (dense=mvs): the same F-score, MVS s/view.
 * sfm: forced SfM (--matching, default auto), Sim(3)-aligned pose errors, registration rate, s/image.
-* mvs_speed: one plane sweep at the scene's full image size with 4 sources, median of repeats.
+* mvs_speed: one plane sweep with the stage's MVS defaults (working size = mvs_scale x image
+  size, 4 sources), median wall and CPU time of --repeats.
 `mirror_room` is generated at 640x480 with --views capture views (default 30, ~1 min).
 """
 from __future__ import annotations
@@ -68,26 +69,46 @@ def _fscore(scene: Path, ws: Path) -> dict:
     return res
 
 
-def bench_mvs_speed(scene: Path, repeats: int, device: str) -> dict:
+def bench_mvs_speed(scene: Path, repeats: int, device: str, threads: int = 1) -> dict:
+    """One plane sweep of the middle view with the stage's defaults (working size = image size x
+    mvs_scale, pyramid, window, hypotheses, 4 sources), median wall and CPU time of `repeats`."""
+    import cv2
+    import torch
+
     from ..geometry.mvs import plane_sweep, select_sources
     from ..io.images import read_image
     from ..scene import read_input
+    from ..stages.global_mesh import GlobalMeshConfig
+    cfg = GlobalMeshConfig()
     sc = read_input(scene)
-    cams = {v.name: v.camera for v in sc.views}
+    full = {v.name: v.camera for v in sc.views}
+    W, H = full[sc.names[0]].size
+    w, h = round(W * cfg.mvs_scale), round(H * cfg.mvs_scale)
+    cams = {n: c.resized(w, h) for n, c in full.items()}
     ref = sc.names[len(sc.names) // 2]
-    src = select_sources(cams[ref], cams, k=4)
-    imgs = {n: read_image(scene / "images" / n) for n in [ref] + src}
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        plane_sweep(imgs[ref], cams[ref], [imgs[s] for s in src], [cams[s] for s in src], 0.3, 8.0,
-                    device=device)
-        if device == "cuda":
-            import torch
-            torch.cuda.synchronize()
-        times.append(time.perf_counter() - t0)
-    return {"size": list(cams[ref].size), "sources": len(src), "s_per_view_median": statistics.median(times),
-            "runs": times, "device": device}
+    src = select_sources(cams[ref], cams, k=cfg.mvs_sources)
+    imgs = {n: cv2.resize(read_image(scene / "images" / n), (w, h), interpolation=cv2.INTER_AREA)
+            for n in [ref] + src}
+    prev = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    times, cpu = [], []
+    try:
+        for _ in range(repeats):
+            t0, c0 = time.perf_counter(), time.process_time()
+            plane_sweep(imgs[ref], cams[ref], [imgs[s] for s in src], [cams[s] for s in src],
+                        cfg.mvs_depth_min, cfg.mvs_depth_max, num_depths=cfg.mvs_depths,
+                        window=cfg.mvs_window, device=device, max_cost=cfg.mvs_max_cost,
+                        coarse_levels=cfg.mvs_coarse_levels, refine_depths=cfg.mvs_refine_depths,
+                        refine_levels=0 if cfg.mvs_coarse_levels > 0 else 1)
+            if device == "cuda":
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+    finally:
+        torch.set_num_threads(prev)
+    return {"image_size": [W, H], "working_size": [w, h], "sources": len(src),
+            "s_per_view_median": statistics.median(times), "cpu_s_per_view_median": statistics.median(cpu),
+            "runs": times, "device": device, "torch_threads": threads}
 
 
 def main(argv=None) -> int:
@@ -101,6 +122,8 @@ def main(argv=None) -> int:
     ap.add_argument("--parts", default="rgbd,mvs,sfm,mvs_speed")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    ap.add_argument("--threads", type=int, default=None, help="global_mesh.threads (pycolmap and "
+                    "torch threads; default: the stage default)")
     ap.add_argument("--mvs-scale", type=float, default=None, help="global_mesh.mvs_scale (default: "
                     "1.0 for tiny, else the stage default)")
     ap.add_argument("--output", default="bench_global_mesh.json")
@@ -112,30 +135,35 @@ def main(argv=None) -> int:
         size = tuple(int(x) for x in args.size.lower().split("x")) if args.size else None
         scene = _scene(args.scene, args.views, tmp, size)
         mvs_scale = args.mvs_scale or (1.0 if args.scene == "tiny" else None)
+        common = [f"global_mesh.threads={args.threads}"] if args.threads else []
         for part in parts:
             t0 = time.perf_counter()
             if part == "rgbd":
                 runs = []
                 for i in range(args.repeats):
-                    rep = _run_stage(scene, tmp / f"rgbd{i}", [])
+                    rep = _run_stage(scene, tmp / f"rgbd{i}", common)
                     runs.append(rep["timings"]["fusion_ms_per_frame"])
                 res = {"fusion_ms_per_frame_median": statistics.median(runs), "runs": runs,
                        "stage_total_s": rep["timings"]["total_s"], **_fscore(scene, tmp / f"rgbd{i}")}
             elif part == "mvs":
-                sets = ["global_mesh.dense=mvs", f"global_mesh.device={args.device}"]
+                sets = common + ["global_mesh.dense=mvs", f"global_mesh.device={args.device}"]
                 if mvs_scale:
                     sets.append(f"global_mesh.mvs_scale={mvs_scale}")
                 rep = _run_stage(scene, tmp / "mvs", sets)
                 res = {"mvs_s_per_view": rep["timings"]["mvs_s_per_view"],
                        "mvs_cpu_s_per_view": rep["timings"].get("mvs_cpu_s_per_view"),
+                       "mvs_filter_s_per_view": rep["timings"].get("mvs_filter_s_per_view"),
+                       "stage_total_s": rep["timings"]["total_s"],
                        "mvs_valid_fraction": rep.get("mvs_valid_fraction"), **_fscore(scene, tmp / "mvs")}
             elif part == "sfm":
                 from ..geometry.align import pose_errors
                 from ..scene import cameras_from_json, read_input
-                rep = _run_stage(scene, tmp / "sfm", ["global_mesh.force_sfm=true",
-                                                      f"global_mesh.matching={args.matching}"])
+                rep = _run_stage(scene, tmp / "sfm", common + ["global_mesh.force_sfm=true",
+                                                               f"global_mesh.matching={args.matching}"])
                 truth = {v.name: v.camera for v in read_input(scene).views}
                 est = cameras_from_json(tmp / "sfm" / "global" / "cameras.json")
+                keep = Path(args.output).with_suffix(".sfm_cameras.json")  # for later analysis
+                keep.write_text((tmp / "sfm" / "global" / "cameras.json").read_text())
                 lo, hi = np.array([0, 0, 0]), np.array([5, 4, 2.7])  # room box (docs/SYNTHETIC.md)
                 diag = float(np.linalg.norm(hi - lo))
                 err = pose_errors(est, truth)
@@ -147,7 +175,7 @@ def main(argv=None) -> int:
                        "pose_errors": err,
                        "center_error_pct_of_room_diagonal": 100 * err["center_m"]["median"] / diag}
             elif part == "mvs_speed":
-                res = bench_mvs_speed(scene, args.repeats, args.device)
+                res = bench_mvs_speed(scene, args.repeats, args.device, args.threads or 1)
             else:
                 print(f"unknown part {part!r}", file=sys.stderr)
                 return 2

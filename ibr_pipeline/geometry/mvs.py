@@ -112,8 +112,28 @@ def _extract(arr: np.ndarray, origins, size, radius: int, H: int, W: int) -> np.
     return np.stack([p[y:y + th + 2 * radius, x:x + tw + 2 * radius] for y, x in origins])
 
 
+def _box_sum(x: "torch.Tensor", k: int) -> "torch.Tensor":
+    """Sums over k × k windows ('valid') of the last two dims from two running sums (an integral
+    image, Crow 1984): 6 passes whatever k is (14 for shifted adds at k = 7). The float32 rounding
+    is ~1e-7 of a running sum; callers centre grey levels on 0 to keep it small."""
+    torch = _torch()
+    c = torch.cumsum(x, -1)
+    h = c[..., k - 1:].clone()
+    h[..., 1:] -= c[..., :c.shape[-1] - k]
+    c = torch.cumsum(h, -2)
+    out = c[..., k - 1:, :].clone()
+    out[..., 1:, :] -= c[..., :c.shape[-2] - k, :]
+    return out
+
+
+def _torch():
+    import torch
+    return torch
+
+
 class _Sweeper:
-    """The state shared by the passes of one plane sweep: tiles, reference stats, sources."""
+    """The state shared by the passes of one plane sweep at one resolution: tiles, reference
+    window statistics, per-source projection of every tile pixel."""
 
     def __init__(self, ref_gray, ref_cam, src_grays, src_cams, origins, size, radius, window,
                  k_best, dev):
@@ -131,76 +151,88 @@ class _Sweeper:
         tv = _extract(v, origins, size, radius, H, W)
         rays = np.stack([tu, tv, np.ones_like(tu)], 0)  # (3, B, Hp, Wp) homogeneous pixels
         self.B, self.Hp, self.Wp = tu.shape
-        ref = torch.as_tensor(_extract(ref_gray, origins, size, radius, H, W), dtype=torch.float32,
-                              device=dev)[:, None]  # (B, 1, Hp, Wp)
-        pool = self.pool
-        self.ref = ref
-        self.mu_r = pool(ref)
-        self.var_r = (pool(ref * ref) - self.mu_r ** 2).clamp_min(0)
-        # per source: M = K_s R_rel K_r^-1 applied to the pixel, b = K_s t_rel, so that a ref pixel
-        # at z-depth d projects to  d * (M p) + b  (homogeneous source pixel).
+        n = float(window * window)
+        self.n = n
+        # grey levels centred on 0 (NCC is offset-invariant; smaller running sums in _box_sum)
+        ref64 = torch.as_tensor(_extract(ref_gray, origins, size, radius, H, W) - 0.5, dtype=torch.float64)
+        Sr = _box_sum(ref64, window)
+        var_n2 = n * _box_sum(ref64 * ref64, window) - Sr * Sr  # n² × variance
+        self.ref = ref64.to(dev, torch.float32)
+        self.Sr = Sr.to(dev, torch.float32)
+        self.flat_ref = (var_n2 < n * n * FLAT_VAR).to(dev)
+        self.var_r_n2 = var_n2.clamp_min(n * n * FLAT_VAR).to(dev, torch.float32)
+        # per source: a ref pixel p at inverse depth q projects to (P + q b) (homogeneous) with
+        # P = K_s R_rel K_r^-1 p and b = K_s t_rel; rows 0 and 1 are folded into grid_sample's
+        # [-1, 1] coordinates (align_corners): g = (a (P0 + q b0) - (P2 + q b2)) / (P2 + q b2).
         Kr_inv = np.linalg.inv(ref_cam.K)
         self.sources = []
         for g, cam in zip(src_grays, src_cams):
+            h, w = g.shape
             rel = cam.cam_from_world @ ref_cam.world_from_cam
             M = cam.K @ rel[:3, :3] @ Kr_inv
             b = cam.K @ rel[:3, 3]
-            Mp = np.einsum("ij,jbhw->ibhw", M, rays)
-            self.sources.append((
-                torch.as_tensor(g, dtype=torch.float32, device=dev)[None, None],
-                torch.as_tensor(Mp, dtype=torch.float32, device=dev),
-                torch.as_tensor(b, dtype=torch.float32, device=dev),
-                g.shape[1], g.shape[0]))
+            ax, ay = 2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)
+            fold = np.array([[ax, 0, -1], [0, ay, -1], [0, 0, 1]])
+            M, b = fold @ M, fold @ b
+            P = torch.as_tensor(np.einsum("ij,jbhw->ibhw", M, rays), dtype=torch.float32, device=dev)
+            self.sources.append((torch.as_tensor(g - 0.5, dtype=torch.float32, device=dev)[None, None],
+                                 P, [float(x) for x in b], 1.0 + 0.5 * ax, 1.0 + 0.5 * ay))
         self.k_best = min(k_best, len(self.sources))
         self.covered = self.to_image(torch.ones((self.B, th, tw)), 0.0) > 0
 
-    def pool(self, x: "torch.Tensor") -> "torch.Tensor":
-        """Mean over window x window ('valid' box filter) by separable shifted sums: exact in
-        float32 and ~3x faster than avg_pool2d on CPU."""
-        k = self.window
-        h = x[..., 0:x.shape[-1] - k + 1]
-        for i in range(1, k):
-            h = h + x[..., i:x.shape[-1] - k + 1 + i]
-        out = h[..., 0:h.shape[-2] - k + 1, :]
-        for i in range(1, k):
-            out = out + h[..., i:h.shape[-2] - k + 1 + i, :]
-        return out * (1.0 / (k * k))
-
-    def costs(self, depth: "torch.Tensor") -> "torch.Tensor":
-        """Aggregated cost (N, B, th, tw) for hypotheses `depth` (N, B, Hp, Wp)."""
-        torch, F, r = self.torch, self.F, self.r
-        N = depth.shape[0]
-        per_src = []
-        for img, Mp, b, w, h in self.sources:
-            x = depth * Mp[0] + b[0]
-            y = depth * Mp[1] + b[1]
-            z = depth * Mp[2] + b[2]
-            zc = z.clamp_min(1e-6)
-            us, vs = x / zc, y / zc
-            grid = torch.stack([us * (2.0 / max(w - 1, 1)) - 1, vs * (2.0 / max(h - 1, 1)) - 1], -1)
-            warped = F.grid_sample(img, grid.reshape(1, -1, self.Wp, 2), mode="bilinear",
-                                   padding_mode="border", align_corners=True)
-            s = warped.reshape(N, self.B, self.Hp, self.Wp)
-            ref = self.ref[:, 0][None]
-            stats = self.pool(torch.stack([s, s * s, s * ref], 2).reshape(N * self.B, 3, self.Hp, self.Wp))
-            stats = stats.reshape(N, self.B, 3, *stats.shape[-2:])
-            mu_s = stats[:, :, 0]
-            var_s = (stats[:, :, 1] - mu_s ** 2).clamp_min(0)
-            cov = stats[:, :, 2] - mu_s * self.mu_r[:, 0][None]
-            # zero-mean NCC; a flat patch (variance below FLAT_VAR) matches nothing: cost -> 1
-            ncc = cov / torch.sqrt(var_s * self.var_r[:, 0][None] + FLAT_VAR ** 2)
-            cost = (1.0 - ncc).clamp(0.0, MAX_COST)
-            ok = ((z > 1e-6) & (us >= -0.5) & (us <= w - 0.5) & (vs >= -0.5) & (vs <= h - 0.5))
-            ok = ok[:, :, r:self.Hp - r, r:self.Wp - r]
-            per_src.append(torch.where(ok, cost, torch.full_like(cost, _UNSEEN)))
-        allc = torch.stack(per_src, 0)
-        if self.k_best < allc.shape[0]:
-            allc = torch.topk(allc, self.k_best, dim=0, largest=False).values
-        # mean over the best K sources that see the pixel; a pixel no source sees costs MAX_COST
-        seen = allc < _UNSEEN
-        n = seen.sum(0)
-        agg = torch.where(seen, allc, torch.zeros_like(allc)).sum(0) / n.clamp_min(1)
-        return torch.where(n > 0, agg, torch.full_like(agg, MAX_COST))
+    def costs(self, inv: "torch.Tensor") -> "torch.Tensor":
+        """Aggregated cost (N, B, th, tw) for inverse-depth hypotheses `inv` (N, B, Hp, Wp)."""
+        torch, F, r, n = self.torch, self.F, self.r, self.n
+        N = inv.shape[0]
+        ys, xs = slice(r, self.Hp - r), slice(r, self.Wp - r)
+        ref = self.ref[None]
+        per_src, total, seen, worst = [], None, None, None
+        running = self.k_best >= len(self.sources) - 1
+        for img, P, b, lim_x, lim_y in self.sources:
+            z = torch.add(P[2], inv, alpha=b[2])
+            gx = torch.add(P[0], inv, alpha=b[0])
+            gy = torch.add(P[1], inv, alpha=b[1])
+            ok = z[..., ys, xs] > 1e-6
+            z.clamp_min_(1e-6)
+            gx.div_(z)
+            gy.div_(z)
+            ok &= gx[..., ys, xs].abs() <= lim_x
+            ok &= gy[..., ys, xs].abs() <= lim_y
+            grid = torch.stack([gx, gy], -1).reshape(1, -1, self.Wp, 2)
+            s = F.grid_sample(img, grid, mode="bilinear", padding_mode="border",
+                              align_corners=True).reshape(N, self.B, self.Hp, self.Wp)
+            S1 = _box_sum(s, self.window)
+            S2 = _box_sum(s * s, self.window)
+            S3 = _box_sum(s * ref, self.window)
+            # zero-mean NCC from window sums: (n S3 - S1 Sr) / sqrt((n S2 - S1²)(n Sr2 - Sr²)); a
+            # flat source patch (variance below FLAT_VAR) correlates with nothing
+            num = torch.addcmul(S3 * n, S1, self.Sr, value=-1.0)
+            den = torch.addcmul(S2 * n, S1, S1, value=-1.0).clamp_min_(n * n * FLAT_VAR)
+            num.mul_(den.mul_(self.var_r_n2).rsqrt_())
+            cost = num.neg_().add_(1.0).clamp_(0.0, MAX_COST)
+            if running:  # best K >= all but one: mean of the seen costs minus the worst
+                c = torch.where(ok, cost, torch.zeros((), device=cost.device))
+                if total is None:
+                    total, seen, worst = c, ok.to(cost.dtype), c.clone()
+                else:
+                    total += c
+                    seen += ok
+                    torch.maximum(worst, c, out=worst)
+            else:
+                per_src.append(torch.where(ok, cost, torch.full_like(cost, _UNSEEN)))
+        if running:
+            m = float(len(self.sources))
+            drop = (seen == m) & (self.k_best < m)
+            agg = torch.where(drop, (total - worst) / max(m - 1, 1), total / seen.clamp_min(1))
+            agg = torch.where(seen > 0, agg, torch.full_like(agg, MAX_COST))
+        else:
+            allc = torch.topk(torch.stack(per_src, 0), self.k_best, dim=0, largest=False).values
+            ok = allc < _UNSEEN
+            cnt = ok.sum(0)
+            agg = torch.where(ok, allc, torch.zeros_like(allc)).sum(0) / cnt.clamp_min(1)
+            agg = torch.where(cnt > 0, agg, torch.full_like(agg, MAX_COST))
+        # a flat reference patch matches nothing (cost 1) wherever some source sees it
+        return torch.where(self.flat_ref & (agg < MAX_COST), torch.ones((), device=agg.device), agg)
 
     def sweep(self, inv_near: "torch.Tensor", inv_far: "torch.Tensor", num: int, batch: int,
               progress: bool = False, desc: str = "plane sweep"):
@@ -208,16 +240,15 @@ class _Sweeper:
         maps; returns (inverse depth, cost, inverse-depth step) on the tile interiors."""
         torch, r = self.torch, self.r
         steps = torch.arange(num, device=self.dev, dtype=torch.float32) / max(num - 1, 1)
-        vol = []
+        th, tw = self.size
+        vol = torch.empty((num, self.B, th, tw), device=self.dev)
         chunks = range(0, num, batch)
         if progress:
             from tqdm import tqdm
             chunks = tqdm(chunks, desc=desc, unit="batch", leave=False)
         for i0 in chunks:
             t = steps[i0:i0 + batch][:, None, None, None]
-            inv = inv_far[None] + (inv_near - inv_far)[None] * t
-            vol.append(self.costs(1.0 / inv))
-        vol = torch.cat(vol, 0)  # (num, B, th, tw)
+            vol[i0:i0 + batch] = self.costs(inv_far[None] + (inv_near - inv_far)[None] * t)
         best = vol.argmin(0)
         c0 = vol.gather(0, best[None])[0]
         # parabola through the costs at best-1, best, best+1 (in hypothesis index space)
@@ -243,12 +274,74 @@ class _Sweeper:
         return out
 
 
+def _sweep_level(ref_gray, ref_cam, src_grays, src_cams, inv_near, inv_far, mask, num, opt):
+    """One resolution: `num` hypotheses between the (H, W) inverse-depth maps, then
+    opt['refine_levels'] passes of ±1.5 steps. Returns (inv, cost, step, computed) images."""
+    import torch
+    H, W = ref_gray.shape
+    r, dev = opt["window"] // 2, opt["dev"]
+    origins, size = _active_tiles(mask, H, W, opt["tile"], r)
+    sw = _Sweeper(ref_gray, ref_cam, src_grays, src_cams, origins, size, r, opt["window"],
+                  opt["k_best"], dev)
+    tt = lambda a: torch.as_tensor(_extract(a, origins, size, r, H, W), dtype=torch.float32, device=dev)  # noqa: E731
+    near0, far0 = tt(inv_near), tt(inv_far)
+    inv, cost, step = sw.sweep(near0, far0, num, opt["batch"], opt["progress"])
+    for level in range(opt["refine_levels"]):
+        # re-sweep ±1.5 steps around the winner, inside the original range
+        lo_i, hi_i = far0[:, r:sw.Hp - r, r:sw.Wp - r], near0[:, r:sw.Hp - r, r:sw.Wp - r]
+        near = torch.minimum(inv + 1.5 * step, hi_i)
+        far = torch.maximum(inv - 1.5 * step, lo_i)
+        # the halo of each tile takes the neighbouring tiles' bands (same result as unmasked)
+        near_img = np.where(sw.covered, sw.to_image(near, 0.0), inv_near)
+        far_img = np.where(sw.covered, sw.to_image(far, 0.0), inv_far)
+        inv, cost, step = sw.sweep(tt(near_img), tt(far_img), opt["refine_depths"], opt["batch"],
+                                   opt["progress"], f"refine {level + 1}")
+    return sw.to_image(inv, 0.0), sw.to_image(cost, MAX_COST), sw.to_image(step, 0.0), sw.covered
+
+
+def _half(a: np.ndarray, how: str) -> np.ndarray:
+    """2 × 2 block reduction (odd sizes: the last row/column is repeated): max, min or any."""
+    H, W = a.shape
+    p = np.pad(a, ((0, H % 2), (0, W % 2)), mode="edge")
+    b = p.reshape(p.shape[0] // 2, 2, p.shape[1] // 2, 2)
+    return b.max(axis=(1, 3)) if how in ("max", "any") else b.min(axis=(1, 3))
+
+
+def _solve(ref_gray, ref_cam, src_grays, src_cams, inv_near, inv_far, mask, levels, opt):
+    """Coarse-to-fine (pyramid) plane sweep: the full `num_depths` sweep runs `levels` octaves
+    down; every finer level sweeps `refine_depths` hypotheses inside the band spanned by the
+    coarser winners of the 3 × 3 neighbourhood ± 1.5 coarse steps (so that both sides of a depth
+    edge stay in the band), then `refine_levels` passes at the finest level only.
+    Returns (inv, cost, step, computed) images at the input resolution."""
+    import cv2
+    import scipy.ndimage as ndi
+    H, W = ref_gray.shape
+    if levels <= 0 or min(H, W) < 4 * opt["window"]:
+        return _sweep_level(ref_gray, ref_cam, src_grays, src_cams, inv_near, inv_far, mask,
+                            opt["num_depths"], opt)
+    h2, w2 = (H + 1) // 2, (W + 1) // 2
+    down = lambda g: cv2.resize(g, (w2, h2), interpolation=cv2.INTER_AREA)  # noqa: E731
+    inv_c, _, step_c, done = _solve(
+        down(ref_gray), _at_size(ref_cam, w2, h2), [down(g) for g in src_grays],
+        [_at_size(c, (g.shape[1] + 1) // 2, (g.shape[0] + 1) // 2) for c, g in zip(src_cams, src_grays)],
+        _half(inv_near, "max"), _half(inv_far, "min"), None if mask is None else _half(mask, "any"),
+        levels - 1, dict(opt, refine_levels=0))
+    hi = ndi.maximum_filter(np.where(done, inv_c + 1.5 * step_c, -np.inf), size=3)
+    lo = ndi.minimum_filter(np.where(done, inv_c - 1.5 * step_c, np.inf), size=3)
+    up = lambda a: np.repeat(np.repeat(a, 2, 0), 2, 1)[:H, :W]  # noqa: E731
+    near, far = np.minimum(up(hi), inv_near), np.maximum(up(lo), inv_far)
+    bad = ~(np.isfinite(near) & np.isfinite(far) & (near > far))
+    near, far = np.where(bad, inv_near, near), np.where(bad, inv_far, far)
+    return _sweep_level(ref_gray, ref_cam, src_grays, src_cams, near, far, mask, opt["refine_depths"], opt)
+
+
 # --- public API ----------------------------------------------------------------------------------
 def plane_sweep(ref_image: np.ndarray, ref_cam: Camera, src_images: Sequence[np.ndarray],
                 src_cams: Sequence[Camera], depth_min, depth_max, num_depths: int = 48,
                 window: int = 7, mask: np.ndarray | None = None, device: str = "cpu",
                 batch: int = 8, k_best: int = 3, refine_levels: int = 1, refine_depths: int = 16,
-                max_cost: float = 0.5, tile: int = 32, progress: bool = False) -> SweepResult:
+                max_cost: float = 0.5, tile: int = 32, progress: bool = False,
+                coarse_levels: int = 0) -> SweepResult:
     """Fronto-parallel plane-sweep depth of `ref_image` from neighbouring views (module docstring).
 
     ref_image (H, W, 3) float32 in [0, 1] (or (H, W) grey); src_images: list of (h, w, 3); cameras
@@ -257,6 +350,8 @@ def plane_sweep(ref_image: np.ndarray, ref_cam: Camera, src_images: Sequence[np.
     batch: hypotheses evaluated at once (memory ~ batch x 12 x tile pixels floats per source).
     k_best: costs of the best K sources averaged per hypothesis (occlusion robustness).
     max_cost: pixels whose best aggregated 1 − NCC exceeds this are invalid (depth 0).
+    coarse_levels: run the full `num_depths` sweep this many octaves down and only
+    `refine_depths` hypotheses per pixel at each finer level (pyramid; 0 = single resolution).
     """
     import torch
 
@@ -267,8 +362,9 @@ def plane_sweep(ref_image: np.ndarray, ref_cam: Camera, src_images: Sequence[np.
                          f"and {len(src_cams)} cameras")
     if window < 3 or window % 2 == 0:
         raise ValueError(f"window must be odd and >= 3, got {window}")
-    if num_depths < 2 or refine_depths < 2 or batch < 1 or k_best < 1 or tile < 8:
-        raise ValueError("num_depths/refine_depths >= 2, batch >= 1, k_best >= 1, tile >= 8 required")
+    if num_depths < 2 or refine_depths < 2 or batch < 1 or k_best < 1 or tile < 8 or coarse_levels < 0:
+        raise ValueError("num_depths/refine_depths >= 2, batch >= 1, k_best >= 1, tile >= 8, "
+                         "coarse_levels >= 0 required")
     src_grays = [_gray(s, f"src_images[{i}]") for i, s in enumerate(src_images)]
     ref_cam = _at_size(ref_cam, W, H)
     src_cams = [_at_size(c, g.shape[1], g.shape[0]) for c, g in zip(src_cams, src_grays)]
@@ -289,27 +385,13 @@ def plane_sweep(ref_image: np.ndarray, ref_cam: Camera, src_images: Sequence[np.
     fill_min, fill_max = float(np.median(dmin[usable])), float(np.median(dmax[usable]))
     dmin = np.where(ranged, dmin, fill_min)
     dmax = np.where(ranged, dmax, fill_max)
-
-    dev = _pick_device(device)
-    r = window // 2
-    origins, size = _active_tiles(mask, H, W, tile, r)
-    sw = _Sweeper(ref_gray, ref_cam, src_grays, src_cams, origins, size, r, window, k_best, dev)
-    tt = lambda a: torch.as_tensor(_extract(a, origins, size, r, H, W), dtype=torch.float32, device=dev)  # noqa: E731
-    inv_near0, inv_far0 = tt(1.0 / dmin), tt(1.0 / dmax)
+    opt = dict(window=window, dev=_pick_device(device), tile=tile, k_best=k_best, batch=batch,
+               progress=progress, refine_levels=refine_levels, refine_depths=refine_depths,
+               num_depths=num_depths)
     with torch.no_grad():
-        inv, cost, step = sw.sweep(inv_near0, inv_far0, num_depths, batch, progress)
-        for level in range(refine_levels):
-            # coarse-to-fine: re-sweep ±1.5 steps around the winner, inside the original range
-            lo_i, hi_i = (inv_far0[:, r:sw.Hp - r, r:sw.Wp - r], inv_near0[:, r:sw.Hp - r, r:sw.Wp - r])
-            near = torch.minimum(inv + 1.5 * step, hi_i)
-            far = torch.maximum(inv - 1.5 * step, lo_i)
-            # the halo of each tile takes the neighbouring tiles' bands (same result as unmasked)
-            near_img = np.where(sw.covered, sw.to_image(near, 0.0), 1.0 / dmin)
-            far_img = np.where(sw.covered, sw.to_image(far, 0.0), 1.0 / dmax)
-            inv, cost, step = sw.sweep(tt(near_img), tt(far_img), refine_depths, batch,
-                                       progress, f"refine {level + 1}")
-        depth = sw.to_image(1.0 / inv.clamp_min(1e-9), 0.0)
-        cost_img = sw.to_image(cost, MAX_COST)
+        inv, cost_img, _, _ = _solve(ref_gray, ref_cam, src_grays, src_cams, 1.0 / dmin, 1.0 / dmax,
+                                     mask, coarse_levels, opt)
+    depth = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-9), 0.0)
     valid = usable & (cost_img <= max_cost) & np.isfinite(depth) & (depth > 0)
     cost_img[~usable] = MAX_COST
     return SweepResult(np.where(valid, depth, 0).astype(np.float32), cost_img.astype(np.float32), valid)

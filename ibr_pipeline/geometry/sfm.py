@@ -36,7 +36,8 @@ def _camera_from_image(image) -> Camera:
 def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str = "sequential",
             intrinsics: Camera | None = None, overlap: int = 10, threads: int = 1,
             max_image_size: int = 3200, init_min_inliers: int = 50, abs_pose_min_inliers: int = 15,
-            init_min_tri_angle: float = 8.0) -> SfMResult:
+            init_min_tri_angle: float = 8.0, peak_threshold: float | None = None,
+            close_loop: bool = True) -> SfMResult:
     """Run SIFT + matching + incremental mapping on `names` (paths relative to `image_dir`).
 
     intrinsics: one Camera whose K is shared by all images and kept fixed (PINHOLE); None lets
@@ -46,7 +47,9 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
     Mapper thresholds are relaxed from COLMAP's defaults (initial pair 100 inliers and 16°,
     image registration 30 inliers) for sparse or low-resolution captures, whose neighbouring
     views share few SIFT matches: `init_min_inliers`, `abs_pose_min_inliers`, `init_min_tri_angle`
-    (degrees). Matching is guided (epipolar-constrained second pass), and with known intrinsics
+    (degrees). `close_loop` (sequential only): also match the first and the last images whose
+    circular index distance is <= overlap (a capture walking round a room ends where it started; a
+    loop closure without a vocabulary tree, overlap²/2 extra pairs). Matching is guided (epipolar-constrained second pass), and with known intrinsics
     neither bundle adjustment nor absolute-pose estimation refines them.
     """
     import pycolmap
@@ -70,25 +73,36 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
     extract = pycolmap.FeatureExtractionOptions()
     extract.num_threads = threads
     extract.max_image_size = max_image_size
+    if peak_threshold is not None:  # DoG contrast threshold (COLMAP 0.0067): lower = more features
+        extract.sift.peak_threshold = peak_threshold
     extract.use_gpu = False
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     pycolmap.extract_features(db, image_dir, image_names=list(names),
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=extract, device=pycolmap.Device.cpu)
-    stats["extract_s"] = time.perf_counter() - t0
+    stats["extract_s"], stats["extract_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
     mopt = pycolmap.FeatureMatchingOptions()
     mopt.num_threads = threads
     mopt.use_gpu = False
     mopt.guided_matching = True
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if matching == "sequential":
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = overlap
         pycolmap.match_sequential(db, matching_options=mopt, pairing_options=pairing,
                                   device=pycolmap.Device.cpu)
+        wrap = loop_pairs(names, overlap) if close_loop else []
+        if wrap:
+            pairs = work_dir / "loop_pairs.txt"
+            pairs.write_text("".join(f"{x} {y}\n" for x, y in wrap))
+            imported = pycolmap.ImportedPairingOptions()
+            imported.match_list_path = str(pairs)
+            pycolmap.match_image_pairs(db, matching_options=mopt, pairing_options=imported,
+                                       device=pycolmap.Device.cpu)
+        stats["loop_pairs"] = len(wrap)
     else:
         pycolmap.match_exhaustive(db, matching_options=mopt, device=pycolmap.Device.cpu)
-    stats["match_s"] = time.perf_counter() - t0
+    stats["match_s"], stats["match_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = threads
     opts.mapper.init_min_num_inliers = init_min_inliers
@@ -100,9 +114,9 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
         opts.ba_refine_extra_params = False
         opts.mapper.abs_pose_refine_focal_length = False
         opts.mapper.abs_pose_refine_extra_params = False
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     models = pycolmap.incremental_mapping(db, image_dir, work_dir / "models", opts)
-    stats["map_s"] = time.perf_counter() - t0
+    stats["map_s"], stats["map_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
     if not models:
         raise InputError(f"{image_dir}: structure from motion registered no images "
                          f"(too little texture or overlap?)")
@@ -113,6 +127,14 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
                  points=rec.num_points3D(),
                  reprojection_error_px=float(rec.compute_mean_reprojection_error()))
     return SfMResult(cams, rec, stats)
+
+
+def loop_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
+    """Pairs of a closed sequence that sequential matching misses: last and first images whose
+    circular index distance is <= overlap (and whose linear distance exceeds it)."""
+    n = len(names)
+    return [(names[n - a], names[b]) for a in range(1, overlap + 1) for b in range(overlap + 1 - a)
+            if n - a > b + overlap]
 
 
 def keypoint_depths(rec, name: str) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,8 @@ class GlobalMeshConfig(StageConfig):
     matching: str = param("auto", "SfM matching: sequential (video-like), exhaustive (small sets), "
                           "auto = exhaustive up to 40 images", choices=("auto", "sequential", "exhaustive"))
     sequential_overlap: int = param(10, "sequential matching: neighbours matched per image", min=1, max=100)
+    close_loop: bool = param(True, "sequential matching: also match the last images with the first "
+                             "(a capture that walks round the room)")
     min_registered: int = param(3, "fewer registered views than this is an error", min=2)
     scale: float = param(0.0, "metres per SfM unit when there is no depth (0 = keep SfM units)", min=0.0, max=1e6)
     dense: str = param("auto", "dense geometry: rgbd (TSDF of depth frames), mvs (plane sweep), "
@@ -46,8 +48,12 @@ class GlobalMeshConfig(StageConfig):
     reflector_fill: bool = param(True, "replace reflector pixels by the reflector plane (else drop them)")
     mvs_scale: float = param(0.5, "MVS working resolution relative to the images", min=0.05, max=1.0)
     mvs_sources: int = param(4, "MVS source views per reference view", min=1, max=16)
-    mvs_depths: int = param(96, "MVS plane hypotheses (uniform in inverse depth)", min=4, max=512)
-    mvs_window: int = param(7, "MVS NCC window (odd)", min=3, max=21)
+    mvs_depths: int = param(96, "MVS plane hypotheses (uniform in inverse depth) of the full sweep",
+                            min=4, max=512)
+    mvs_coarse_levels: int = param(1, "MVS pyramid: the full sweep runs this many octaves below the "
+                                   "working size, finer levels search a band around it", min=0, max=4)
+    mvs_refine_depths: int = param(16, "MVS hypotheses per pixel at each finer pyramid level", min=2, max=128)
+    mvs_window: int = param(9, "MVS NCC window (odd)", min=3, max=21)
     mvs_max_cost: float = param(0.5, "MVS: reject pixels whose 1 - NCC exceeds this", min=0.0, max=2.0)
     mvs_min_consistent: int = param(1, "MVS: source depth maps that must agree (geometric filter)", min=0, max=16)
     mvs_consistency_tol: float = param(0.02, "MVS geometric filter: relative depth tolerance", min=1e-4, max=0.5)
@@ -56,7 +62,7 @@ class GlobalMeshConfig(StageConfig):
     mvs_depth_min: float = param(0.3, "MVS depth range when there are no SfM points", min=1e-3, max=1e4)
     mvs_depth_max: float = param(8.0, "MVS depth range when there are no SfM points", min=1e-3, max=1e4)
     device: str = param("cpu", "torch device for MVS", choices=("cpu", "cuda"))
-    threads: int = param(1, "threads for pycolmap", min=1, max=256)
+    threads: int = param(1, "threads for pycolmap and for torch (MVS on CPU)", min=1, max=256)
     progress: bool = param(True, "show progress bars")
 
     def check(self, prefix: str) -> None:
@@ -111,7 +117,7 @@ def _poses(ctx, depth_views: dict) -> tuple[dict, dict, object]:
     ws.path(".ibr").mkdir(exist_ok=True)
     with tempfile.TemporaryDirectory(dir=ws.path(".ibr"), prefix="sfm-") as tmp:
         res = sfm.run_sfm(_image_dir(ws, scene), scene.names, Path(tmp), matching, intr,
-                          cfg.sequential_overlap, cfg.threads)
+                          cfg.sequential_overlap, cfg.threads, close_loop=cfg.close_loop)
     cams, rec = res.cameras, res.reconstruction
     if len(cams) < cfg.min_registered:
         raise InputError(f"{ws.input_root}: SfM registered only {len(cams)} of {len(scene.views)} "
@@ -189,35 +195,52 @@ def _mvs_depths(ctx, cams, rec, report) -> dict:
         im = read_image(ws.path(scene.view(n).image))
         imgs[n] = cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) if (w, h) != im.shape[1::-1] else im
         wcams[n] = cam.resized(w, h)
+
+    def filtered(raw):  # geometric consistency (forward-backward) filter
+        out = {}
+        for n, (d, src) in raw.items():
+            others = [s for s in src if s in raw]
+            if cfg.mvs_min_consistent > 0 and others:
+                cnt = mvs.geometric_consistency(wcams[n], d, [wcams[s] for s in others],
+                                                [raw[s][0] for s in others], rel_tol=cfg.mvs_consistency_tol,
+                                                reproj_px=cfg.mvs_consistency_px,
+                                                device=cfg.device)
+                d = np.where(cnt >= min(cfg.mvs_min_consistent, len(others)), d, 0).astype(np.float32)
+            out[n] = (d, wcams[n])
+        return out
+
+    import torch
+    prev_threads = torch.get_num_threads()
+    torch.set_num_threads(cfg.threads)  # threads beyond the free cores only spin-wait
     raw, t0, c0 = {}, time.perf_counter(), time.process_time()
-    for n in tqdm(cams, desc="global_mesh: MVS", unit="view", disable=not cfg.progress, leave=False):
-        lo, hi = cfg.mvs_depth_min, cfg.mvs_depth_max
-        if rec is not None:
-            _, z = keypoint_depths(rec, n)
-            if len(z) >= 10:  # search between the keypoints' depth percentiles, widened
-                lo, hi = float(np.percentile(z, 2)) * 0.7, float(np.percentile(z, 98)) * 1.4
-        src = mvs.select_sources(wcams[n], wcams, k=cfg.mvs_sources, scene_depth=float(np.sqrt(lo * hi)))
-        if not src:
-            log.warning("global_mesh: view %s has no MVS source view; skipped", n)
-            continue
-        r = mvs.plane_sweep(imgs[n], wcams[n], [imgs[s] for s in src], [wcams[s] for s in src], lo, hi,
-                            num_depths=cfg.mvs_depths, window=cfg.mvs_window, device=cfg.device,
-                            max_cost=cfg.mvs_max_cost)
-        raw[n] = (r.depth, src)
-    report["timings"]["mvs_s_per_view"] = (time.perf_counter() - t0) / max(len(raw), 1)
-    report["timings"]["mvs_cpu_s_per_view"] = (time.process_time() - c0) / max(len(raw), 1)
-    out = {}
-    for n, (d, src) in raw.items():
-        others = [s for s in src if s in raw]
-        if cfg.mvs_min_consistent > 0 and others:
-            cnt = mvs.geometric_consistency(wcams[n], d, [wcams[s] for s in others],
-                                            [raw[s][0] for s in others], rel_tol=cfg.mvs_consistency_tol,
-                                            reproj_px=cfg.mvs_consistency_px,
-                                            device=cfg.device)
-            d = np.where(cnt >= min(cfg.mvs_min_consistent, len(others)), d, 0).astype(np.float32)
-        out[n] = (d, wcams[n])
+    try:
+        for n in tqdm(cams, desc="global_mesh: MVS", unit="view", disable=not cfg.progress, leave=False):
+            lo, hi = cfg.mvs_depth_min, cfg.mvs_depth_max
+            if rec is not None:
+                _, z = keypoint_depths(rec, n)
+                if len(z) >= 10:  # search between the keypoints' depth percentiles, widened
+                    lo, hi = float(np.percentile(z, 2)) * 0.7, float(np.percentile(z, 98)) * 1.4
+            src = mvs.select_sources(wcams[n], wcams, k=cfg.mvs_sources, scene_depth=float(np.sqrt(lo * hi)))
+            if not src:
+                log.warning("global_mesh: view %s has no MVS source view; skipped", n)
+                continue
+            r = mvs.plane_sweep(imgs[n], wcams[n], [imgs[s] for s in src], [wcams[s] for s in src], lo, hi,
+                                num_depths=cfg.mvs_depths, window=cfg.mvs_window, device=cfg.device,
+                                max_cost=cfg.mvs_max_cost, coarse_levels=cfg.mvs_coarse_levels,
+                                refine_depths=cfg.mvs_refine_depths,
+                                refine_levels=0 if cfg.mvs_coarse_levels > 0 else 1)
+            raw[n] = (r.depth, src)
+        report["timings"]["mvs_s_per_view"] = (time.perf_counter() - t0) / max(len(raw), 1)
+        report["timings"]["mvs_cpu_s_per_view"] = (time.process_time() - c0) / max(len(raw), 1)
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = filtered(raw)
+        report["timings"]["mvs_filter_s_per_view"] = (time.perf_counter() - t0) / max(len(raw), 1)
+        report["timings"]["mvs_filter_cpu_s_per_view"] = (time.process_time() - c0) / max(len(raw), 1)
+    finally:
+        torch.set_num_threads(prev_threads)
     report["mvs_valid_fraction"] = float(np.mean([np.mean(d > 0) for d, _ in out.values()])) if out else 0.0
     return out
+
 
 
 def run(ctx: StageContext) -> None:
@@ -314,4 +337,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="camera poses (given or COLMAP SfM) and a global mesh "
               "(RGB-D TSDF fusion or plane-sweep MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="1", run=run, inputs=inputs, outputs=OUTPUTS)
+              config=GlobalMeshConfig, version="2", run=run, inputs=inputs, outputs=OUTPUTS)
