@@ -144,6 +144,16 @@ class Taps:
         return iter((self.idx, self.w, None, self.smooth, self.nearest))
 
 
+
+def cell(qx, qy, W: int, H: int):
+    """Bilinear cell of locations (qx, qy) in a W x H grid: flat index of its top-left tap (M,),
+    fractions fx, fy (M,) and `inside` (M,) (within half a pixel of the grid)."""
+    xc, yc = qx.clamp(0, W - 1), qy.clamp(0, H - 1)
+    x0 = xc.floor().clamp_(max=max(W - 2, 0))
+    y0 = yc.floor().clamp_(max=max(H - 2, 0))
+    inside = (qx >= -0.5) & (qx <= W - 0.5) & (qy >= -0.5) & (qy <= H - 0.5)
+    return (y0 * W + x0).long(), xc - x0, yc - y0, inside
+
 class Sampler:
     """Bilinear sampling of (H, W, C) images at continuous pixel locations, aware of validity
     and depth discontinuities: a location is `smooth` when its 4 taps are valid and their
@@ -196,14 +206,7 @@ class Sampler:
         self.offs = torch.tensor([0, dx, dy, dy + dx], device=dev)
 
     def taps(self, q: torch.Tensor) -> Taps:
-        W, H = self.W, self.H
-        qx, qy = q[..., 0], q[..., 1]
-        xc, yc = qx.clamp(0, W - 1), qy.clamp(0, H - 1)
-        x0 = xc.floor().clamp_(max=max(W - 2, 0))
-        y0 = yc.floor().clamp_(max=max(H - 2, 0))
-        fx, fy = xc - x0, yc - y0
-        i0 = (y0 * W + x0).long()
-        inside = (qx >= -0.5) & (qx <= W - 0.5) & (qy >= -0.5) & (qy <= H - 0.5)
+        i0, fx, fy, inside = cell(q[..., 0], q[..., 1], self.W, self.H)
         smooth = self.quad_ok[i0] & inside
         # nearest tap: the heaviest one; where not smooth, the heaviest *valid* one (or -1)
         nearest = i0 + (fx >= 0.5).long() * self.offs[1] + (fy >= 0.5).long() * self.offs[2]

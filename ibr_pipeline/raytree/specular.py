@@ -108,13 +108,7 @@ class _Energy:
     def coeffs(self, qx, qy):
         """(16, M) quad coefficients at locations (qx, qy), fractions fx, fy, smooth (M,) and
         defined (M,) (a valid tap was read)."""
-        W, H = self.W, self.H
-        xc, yc = qx.clamp(0, W - 1), qy.clamp(0, H - 1)
-        x0 = xc.floor().clamp_(max=max(W - 2, 0))
-        y0 = yc.floor().clamp_(max=max(H - 2, 0))
-        fx, fy = xc - x0, yc - y0
-        i0 = (y0 * W + x0).long()
-        inside = (qx >= -0.5) & (qx <= W - 0.5) & (qy >= -0.5) & (qy <= H - 0.5)
+        i0, fx, fy, inside = ops.cell(qx, qy, self.W, self.H)
         smooth = self.quad_ok[i0] & inside
         C = self.quad.index_select(0, i0).T.contiguous()
         defined = smooth
