@@ -224,7 +224,7 @@ def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
     (t's mirror-world points projected into k), as in Eq. 8; unsplit: I_k(a). `layers` =
     (I0_k, R_k) of another source (GT). Returns (target, layered, unsplit, extra) on the pixels
     where both warps are valid, or None."""
-    from ..geometry.decompose import _bilinear, _nearest, depth_consistent, project
+    from ..geometry.decompose import sample_bilinear, _nearest, depth_consistent, project
     sel = tg.mask & (tg.D1 > 0)
     a, za = project(kg.camera, tg.X0[sel])
     b, zb = project(kg.camera, tg.X1[sel])
@@ -233,9 +233,9 @@ def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
     if ok.sum() < 50:
         return None
     a, b = a[ok], b[ok]
-    lay = _bilinear(kg.image - R_k, a) + _bilinear(R_k, b)
-    extra = None if layers is None else _bilinear(layers[0], a) + _bilinear(layers[1], b)
-    return tg.image[sel][ok], lay, _bilinear(kg.image, a), extra, float(ok.mean())
+    lay = sample_bilinear(kg.image - R_k, a) + sample_bilinear(R_k, b)
+    extra = None if layers is None else sample_bilinear(layers[0], a) + sample_bilinear(layers[1], b)
+    return tg.image[sel][ok], lay, sample_bilinear(kg.image, a), extra, float(ok.mean())
 
 
 def heldout(ws, scene: Path, base: dict, neighbours: int = 2) -> dict:

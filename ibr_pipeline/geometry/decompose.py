@@ -224,7 +224,7 @@ def bilinear_matrix(pos: np.ndarray, W: int, H: int):
     return sp.csr_matrix((vals, (rows, cols)), shape=(N, H * W))
 
 
-def _bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
+def sample_bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """(N, C) bilinear samples of an (H, W, C) image at (N, 2) positions (clamped)."""
     H, W = img.shape[:2]
     x = np.clip(pos[:, 0], 0, W - 1)
@@ -372,7 +372,7 @@ class Problem:
         for i, t in enumerate(self.terms):
             b = self.b_positions(pose, i)
             Sa_R = bilinear_matrix(t.a, self.W, self.H)[:, self.flat] @ x
-            out.append(self.Sa_I[i] - Sa_R + _bilinear(R, b) - t.target)
+            out.append(self.Sa_I[i] - Sa_R + sample_bilinear(R, b) - t.target)
         return np.concatenate(out)
 
     def energy(self, R, pose=None, parts: bool = False):
@@ -473,7 +473,7 @@ class Problem:
             return np.concatenate([self.b_positions(p, i, sub[i]) for i in range(len(self.terms))])
 
         def res(b):
-            return base + _bilinear(R, b).reshape(-1)
+            return base + sample_bilinear(R, b).reshape(-1)
 
         p = self.pose.copy()
         b = bpos(p)
@@ -482,7 +482,7 @@ class Problem:
         lam, h = 1e-3, 1e-4
         evals = 1
         for _ in range(self.opts.pose_iterations):  # Gauss-Newton / LM, analytic image gradient
-            G = np.stack([_bilinear(gx, b), _bilinear(gy, b)], -1)  # (N, 3, 2)
+            G = np.stack([sample_bilinear(gx, b), sample_bilinear(gy, b)], -1)  # (N, 3, 2)
             J = np.empty((len(r), 6))
             for k in range(6):
                 dp = np.zeros(6)

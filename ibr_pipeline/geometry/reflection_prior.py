@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose import _bilinear, depth_consistent, project
+from .decompose import sample_bilinear, depth_consistent, project
 from .planes import mirror_matrix
 
 
@@ -35,7 +35,7 @@ def reflected_scene_colour(X1: np.ndarray, plane, views, tol: float = 0.03,
         vis = depth_consistent(np.where(exclude, 0.0, depth), pos, z, tol)
         if not vis.any():
             continue
-        s = _bilinear(np.asarray(img, np.float64), np.nan_to_num(pos, nan=-1.0))
+        s = sample_bilinear(np.asarray(img, np.float64), np.nan_to_num(pos, nan=-1.0))
         cols.append(np.where(vis[:, None], s, np.nan))
     if cols:
         st = np.stack(cols)

@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from ..geometry.decompose import sample_bilinear
 from ..scene import Camera
 from . import raycast
 from .blend import fill_holes
@@ -25,51 +26,29 @@ DEPTH_TOL_ABS = 0.01
 MAX_VIEWS = 4          # nearest views tried per frame, in Eq. 14 order
 
 
-def bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(N, C) bilinear samples of an (H, W, C) image at pixel coordinates (u, v) (pixel centres at
-    integers, clamped at the border). numpy rather than cv2.remap: remap needs maps under 32767
-    pixels a side, and these are flat lists of points."""
-    H, W = image.shape[:2]
-    u = np.clip(np.asarray(u, dtype=np.float64), 0, W - 1)
-    v = np.clip(np.asarray(v, dtype=np.float64), 0, H - 1)
-    u0 = np.minimum(np.floor(u).astype(np.int64), W - 2) if W > 1 else np.zeros(len(u), np.int64)
-    v0 = np.minimum(np.floor(v).astype(np.int64), H - 2) if H > 1 else np.zeros(len(v), np.int64)
-    a = (u - u0)[:, None].astype(np.float32)
-    b = (v - v0)[:, None].astype(np.float32)
-    u1, v1 = np.minimum(u0 + 1, W - 1), np.minimum(v0 + 1, H - 1)
-    img = np.asarray(image, dtype=np.float32)
-    return ((1 - a) * (1 - b) * img[v0, u0] + a * (1 - b) * img[v0, u1]
-            + (1 - a) * b * img[v1, u0] + a * b * img[v1, u1])
-
-
 def visible_sample(camera: Camera, depth: np.ndarray, image: np.ndarray,
                    points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Colours (N, 3) of world `points` (N, 3) seen by `camera` (bilinear), and (N,) bool: in front
     of it, inside the image and not occluded (its ray-cast depth agrees with the point's depth)."""
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must be (N, 3), got {points.shape}")
     if depth.shape != (camera.height, camera.width) or image.shape[:2] != depth.shape:
         raise ValueError(f"depth {depth.shape} / image {image.shape} do not match camera "
                          f"{camera.width}x{camera.height}")
-    xc = points @ camera.R.T + camera.t
-    z = xc[:, 2]
-    zs = np.maximum(z, 1e-9)
-    u = camera.K[0, 0] * xc[:, 0] / zs + camera.K[0, 2]
-    v = camera.K[1, 1] * xc[:, 1] / zs + camera.K[1, 2]
+    uv, z = camera.project(points)
     H, W = depth.shape
+    u, v = uv[:, 0], uv[:, 1]
     ok = (z > 1e-3) & (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
-    ui = np.clip(np.round(u), 0, W - 1).astype(np.int64)
-    vi = np.clip(np.round(v), 0, H - 1).astype(np.int64)
+    ui = np.clip(np.round(np.nan_to_num(u)), 0, W - 1).astype(np.int64)
+    vi = np.clip(np.round(np.nan_to_num(v)), 0, H - 1).astype(np.int64)
     dk = depth[vi, ui]
     ok &= (dk > 0) & (np.abs(dk - z) <= DEPTH_TOL_REL * z + DEPTH_TOL_ABS)
-    col = bilinear(image, u, v)
+    col = sample_bilinear(np.asarray(image, np.float32), np.nan_to_num(uv)).astype(np.float32)
     return col, ok
 
 
 class NaiveWarp:
-    """Renders new views by the naïve diffuse warp of `views` {name: (Camera, (H, W, 3) image)}
-    over the mesh (vertices (V, 3), faces (F, 3))."""
+    """Renders new views by the naïve diffuse warp of `views` {name: (Camera, image)} over the
+    mesh (vertices (V, 3), faces (F, 3)); an image is an (H, W, 3) array or a path, read on first
+    use (only the views nearest to the rendered cameras are ever read)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, views: dict, lam: float = 0.1,
                  max_views: int = MAX_VIEWS):
@@ -80,6 +59,7 @@ class NaiveWarp:
         self.lam = lam
         self.max_views = max_views
         self._depth: dict[str, np.ndarray] = {}
+        self._image: dict[str, np.ndarray] = {}
         names = list(self.views)
         self._names = names
         self._axes = np.stack([self.views[n][0].viewing_direction for n in names])
@@ -90,14 +70,25 @@ class NaiveWarp:
             self._depth[name] = raycast.render_depth(self.scene, self.views[name][0])
         return self._depth[name]
 
+    def _view_image(self, name: str) -> np.ndarray:
+        if name not in self._image:
+            img = self.views[name][1]
+            if not isinstance(img, np.ndarray):
+                from ..io.images import read_image
+                img = read_image(img)
+            self._image[name] = np.asarray(img[..., :3], np.float32)
+        return self._image[name]
+
     def render(self, camera: Camera, exclude=()) -> tuple[np.ndarray, np.ndarray, float]:
         """(H, W, 3) colour, (H, W) bool covered-by-a-view, and the frame's milliseconds (the
         captured views' depth maps are preprocessing: ray-cast once, outside the timing)."""
         dist = view_distance(self._axes, self._centers, camera.viewing_direction, camera.center,
                              lam=self.lam)  # Eq. 14
-        order = [self._names[i] for i in np.argsort(dist) if self._names[i] not in set(exclude)]
-        for name in order[:self.max_views]:
+        skip = set(exclude)
+        order = [self._names[i] for i in np.argsort(dist) if self._names[i] not in skip]
+        for name in order[:self.max_views]:  # preprocessing, outside the frame time
             self._view_depth(name)
+            self._view_image(name)
         t0 = time.perf_counter()
         o, d = raycast.camera_rays(camera)
         t = raycast.cast(self.scene, o, d)["t_hit"]
@@ -111,8 +102,8 @@ class NaiveWarp:
         for name in order[:self.max_views]:
             if not todo.any():
                 break
-            cam_k, img_k = self.views[name]
-            col, ok = visible_sample(cam_k, self._view_depth(name), img_k, pts[todo])
+            col, ok = visible_sample(self.views[name][0], self._view_depth(name),
+                                     self._view_image(name), pts[todo])
             sel = np.flatnonzero(todo)[ok]
             color[idx_hit[sel]] = col[ok]
             covered[idx_hit[sel]] = True
@@ -126,7 +117,6 @@ class NaiveWarp:
 def from_workspace(ws, lam: float = 0.1) -> NaiveWarp | None:
     """The baseline over a workspace's global mesh and registered captured views (None when the
     global mesh or the cameras are missing)."""
-    from ..io.images import read_image
     from ..io.mesh import read_ply
     from ..stages.common import registered_cameras
 
@@ -137,9 +127,6 @@ def from_workspace(ws, lam: float = 0.1) -> NaiveWarp | None:
     if not cams:
         return None
     scene = ws.scene()
-    views = {}
-    for name, cam in cams.items():
-        img = read_image(ws.path(scene.view(name).image))
-        views[name] = (cam, img[..., :3])
+    views = {name: (cam, ws.path(scene.view(name).image)) for name, cam in cams.items()}
     mesh = read_ply(mesh_path)
     return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam)

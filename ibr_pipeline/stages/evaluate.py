@@ -236,12 +236,16 @@ def _fmt(v) -> str:
     return "n/a" if v is None else f"{v:.2f} dB"
 
 
+def _render_config(ctx: StageContext):
+    """The workspace's `[render_views]` settings (ibr.toml), for the baselines rendered here."""
+    from ..config import build_config
+    from .render_views import RenderViewsConfig
+    return build_config(RenderViewsConfig, "render_views", ctx.ws.config().get("render_views", {}))
+
+
 def _naive_model(ctx: StageContext):
     from ..render.naive import from_workspace
-    from .render_views import RenderViewsConfig
-    from ..config import build_config
-    cfg = build_config(RenderViewsConfig, "render_views", ctx.ws.config().get("render_views", {}))
-    return from_workspace(ctx.ws, lam=cfg.lam)
+    return from_workspace(ctx.ws, lam=_render_config(ctx).lam)
 
 
 def _oracle_model(ctx: StageContext):
@@ -250,11 +254,7 @@ def _oracle_model(ctx: StageContext):
     root = ctx.ws.input_root
     if not (root / "gt" / "geom").is_dir() or not (root / "gt" / "mesh.ply").is_file():
         return None
-    from ..config import build_config
-    from . import render_views
-    cfg = build_config(render_views.RenderViewsConfig, "render_views",
-                       ctx.ws.config().get("render_views", {}))
-    return GroundTruth(root).model(layers=True, settings=render_settings(cfg))
+    return GroundTruth(root).model(layers=True, settings=render_settings(_render_config(ctx)))
 
 
 def _chart(path: Path, methods: dict) -> None:

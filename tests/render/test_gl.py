@@ -66,11 +66,9 @@ def _seen_by(root, test_name, cam, names) -> np.ndarray:
     for n in names:
         c = caps[n]
         dk = np.load(root / "gt" / "geom" / f"{Path(n).stem}.npz")["depth"]
-        xc = pts @ c.R.T + c.t
-        z = np.maximum(xc[:, 2], 1e-9)
-        u = np.round(c.K[0, 0] * xc[:, 0] / z + c.K[0, 2]).astype(int)
-        v = np.round(c.K[1, 1] * xc[:, 1] / z + c.K[1, 2]).astype(int)
-        ok = (xc[:, 2] > 0) & (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
+        uv, z = c.project(pts)
+        u, v = np.round(np.nan_to_num(uv)).astype(int).T
+        ok = (z > 0) & (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
         ok[ok] &= np.abs(dk[v[ok], u[ok]] - z[ok]) < 0.02 * z[ok] + 0.01
         seen |= ok
     return seen.reshape(d.shape) & (d > 0)

@@ -2,7 +2,8 @@
 import numpy as np
 
 from ibr_pipeline.render import raycast
-from ibr_pipeline.render.naive import NaiveWarp, bilinear
+from ibr_pipeline.geometry.decompose import sample_bilinear
+from ibr_pipeline.render.naive import NaiveWarp
 from ibr_pipeline.scene import Camera
 
 
@@ -14,7 +15,7 @@ def test_bilinear_matches_opencv_remap():
     v = rng.uniform(0, 16, 500)
     ref = cv2.remap(img, u.astype(np.float32).reshape(20, 25), v.astype(np.float32).reshape(20, 25),
                     cv2.INTER_LINEAR).reshape(-1, 3)
-    assert np.abs(bilinear(img, u, v) - ref).max() < 1e-3  # remap uses 5-bit fixed-point weights
+    assert np.abs(sample_bilinear(img, np.c_[u, v]) - ref).max() < 1e-3  # remap uses 5-bit fixed-point weights
 
 
 def _quad(x0, x1, y0, y1, z):
@@ -52,8 +53,7 @@ def test_nearest_view_first_and_occluded_points_from_the_next_view():
 
     def sees(cam):
         occl = raycast.occluded(scene, np.broadcast_to(cam.center, pts.shape).copy(), pts)
-        xc = pts @ cam.R.T + cam.t
-        uv = xc[:, :2] / xc[:, 2:] * np.diag(cam.K)[:2] + cam.K[:2, 2]
+        uv, _ = cam.project(pts)
         inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= 63.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= 47.5)
         return (inside & ~occl).reshape(48, 64), occl.reshape(48, 64)
 
