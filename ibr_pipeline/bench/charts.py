@@ -117,6 +117,7 @@ def _stability(rows: list[dict], out: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from .stability import AXES
     default = next((quality(r) for r in rows if r.get("setting") == "default"), None)
     kinds: dict[str, list] = {}
     for r in rows:
@@ -127,15 +128,15 @@ def _stability(rows: list[dict], out: Path) -> Path | None:
     n = len(kinds)
     fig, axes = plt.subplots(1, n, figsize=(3.0 * n, 3.0), dpi=110, squeeze=False)
     for ax, (kind, pts) in zip(axes[0], sorted(kinds.items())):
-        pts = sorted(pts)
-        xs = [0.0] + [p[0] for p in pts] if default is not None else [p[0] for p in pts]
-        ys = [default] + [p[1] for p in pts] if default is not None else [p[1] for p in pts]
+        label, x0 = AXES.get(kind, ("degradation", 0.0))
+        pts = sorted(pts + ([(x0, default)] if default is not None else []))
+        xs, ys = [p[0] for p in pts], [p[1] for p in pts]
         ax.plot(xs, [y if y is not None else float("nan") for y in ys], "o-")
         for x, y in zip(xs, ys):
             if y is None:
                 ax.axvline(x, color="r", alpha=0.4)  # crashed / no metrics
         ax.set_title(kind, fontsize=9)
-        ax.set_xlabel("degradation", fontsize=8)
+        ax.set_xlabel(label, fontsize=8)
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel(QUALITY[1], fontsize=8)
     fig.tight_layout()

@@ -19,6 +19,14 @@ SWEEPS = {
     "reflector_wrong": (0.1, 0.3),         # plane shifted (m) and tilted (rad) by this much
     "far_camera": (0.5, 1.5),              # held-out cameras pulled back (m)
 }
+# chart axis per kind: (label, the amount that means "not degraded", i.e. where `default` sits)
+AXES = {"pose_rot": ("rotation noise per view (°)", 0.0),
+        "pose_trans": ("position noise per view (m)", 0.0),
+        "depth_noise": ("depth noise σ (m)", 0.0), "depth_holes": ("depth blocks dropped (fraction)", 0.0),
+        "views": ("capture views kept (fraction)", 1.0), "textureless": ("walls flattened (0/1)", 0.0),
+        "reflector_missing": ("reflectors.json emptied (0/1)", 0.0),
+        "reflector_wrong": ("plane shift (m) and tilt (rad)", 0.0),
+        "far_camera": ("test cameras pulled back (m)", 0.0)}
 
 
 def stability_settings() -> list[Setting]:

@@ -24,3 +24,25 @@ def test_bench_records_every_figure_and_draws_charts(tmp_path):
     for name in ("quality_vs_render_ms.png", "quality_vs_preprocess_s.png", "quality_vs_model_mb.png",
                  "settings.md"):
         assert (out / name).stat().st_size > 1000 or name.endswith(".md")
+
+
+def test_fewer_views_setting_keeps_the_scene_and_its_test_cameras(tmp_path, monkeypatch):
+    """`views_50` subsets the default scene's captures (evenly spaced) instead of generating a new
+    scene, so its held-out cameras -- half-way between the full path's captures -- are the same."""
+    import ibr_pipeline.pipeline as pipeline
+    from ibr_pipeline.bench import grid
+    from ibr_pipeline.scene import cameras_from_json
+
+    monkeypatch.setattr(pipeline, "run", lambda *a, **k: [])  # only the input preparation is tested
+    setting = next(s for s in grid.settings("quick") if s.name == "views_50")
+    row = grid.run_setting(setting, "tiny", 0, (160, 120, 8), tmp_path)
+    assert row["views"] == 4
+    ws_input = (tmp_path / "ws" / "views_50" / "ibr.toml").read_text()
+    src = next((tmp_path / "degraded").glob("views_50*"))
+    assert str(src.resolve()) in ws_input
+    full = next((tmp_path / "scenes").glob("tiny-*"))
+    assert (src / "gt" / "test_cameras.json").read_text() == (full / "gt" / "test_cameras.json").read_text()
+    kept, every = cameras_from_json(src / "cameras.json"), cameras_from_json(full / "cameras.json")
+    assert len(kept) == 4 and set(kept) < set(every)
+    for name, cam in kept.items():
+        assert abs(cam.cam_from_world - every[name].cam_from_world).max() == 0
