@@ -156,10 +156,11 @@ def run_setting(s: Setting, scene: str, seed: int, base: tuple[int, int, int], o
     w, h = int(round(w * s.scale / 8)) * 8, int(round(h * s.scale / 8)) * 8
     src = scene_folder(out / "scenes", scene, seed, w, h, n)
     if s.views != 1.0:
-        # fewer capture views of the SAME scene (evenly spaced, as the `views` degradation), so the
-        # held-out test cameras -- half-way between consecutive captures of the full path -- and
-        # hence the scores stay comparable with `default`
-        src = degrade_input(src, out / "degraded" / f"{s.name}-subset", "views", s.views, seed=seed)
+        # fewer capture views (at least 4) of the SAME scene, evenly spaced as the `views`
+        # degradation keeps them, so the held-out test cameras -- half-way between consecutive
+        # captures of the full path -- and hence the scores stay comparable with `default`
+        keep = max(4, int(round(n * s.views)))
+        src = degrade_input(src, out / "degraded" / f"{s.name}-subset", "views", keep / n, seed=seed)
         n = len(cameras_from_json(src / "cameras.json"))
     if s.degrade:
         src = degrade_input(src, out / "degraded" / s.name, *s.degrade, seed=seed)

@@ -34,8 +34,10 @@ def test_fewer_views_setting_keeps_the_scene_and_its_test_cameras(tmp_path, monk
     from ibr_pipeline.scene import cameras_from_json
 
     monkeypatch.setattr(pipeline, "run", lambda *a, **k: [])  # only the input preparation is tested
-    setting = next(s for s in grid.settings("quick") if s.name == "views_50")
-    row = grid.run_setting(setting, "tiny", 0, (160, 120, 8), tmp_path)
+    by_name = {s.name: s for s in grid.settings("full")}
+    # views_25 of 8 views would be 2: the grid keeps at least 4
+    assert grid.run_setting(by_name["views_25"], "tiny", 0, (160, 120, 8), tmp_path)["views"] == 4
+    row = grid.run_setting(by_name["views_50"], "tiny", 0, (160, 120, 8), tmp_path)
     assert row["views"] == 4
     ws_input = (tmp_path / "ws" / "views_50" / "ibr.toml").read_text()
     src = next((tmp_path / "degraded").glob("views_50*"))
