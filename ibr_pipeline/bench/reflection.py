@@ -162,8 +162,7 @@ def _loader(ws, over: dict):
 
 
 def _forget_passes(loader) -> None:
-    for k in [k for k in loader._geo if k[0] == "first"]:
-        del loader._geo[k]
+    loader.first.clear()
 
 
 def _psnr(a, b) -> float:

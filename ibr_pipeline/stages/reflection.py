@@ -83,6 +83,14 @@ class ReflectionConfig(StageConfig):
     prior_tol: float = param(0.03, "depth tolerance (x depth) of the prior's visibility test",
                              min=1e-4, max=1.0)
     mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
+    m1_simplify: bool = param(True, "quadric-simplify M1 like the per-view surface mesh (§4.2.3, "
+                              "view_mesh's adaptive target): flat reflected walls need few "
+                              "triangles, and llvmpipe's frame time grows with them")
+    m1_max_vertices_640x480: int = param(20000, "M1 vertex budget per view, scaled by pixel count "
+                                         "(view_mesh's default)", min=3, max=10_000_000)
+    m1_tol_score: float = param(0.002, "M1 adaptive target: accept a coarser mesh while its mean "
+                                "relative depth error grows by at most this (view_mesh's default)",
+                                min=0.0, max=1.0)
 
     def check(self, prefix: str) -> None:
         from ..errors import ConfigError
@@ -127,9 +135,18 @@ def view_outputs(ctx: StageContext, view: str) -> list[str]:
 
 # --- loading ------------------------------------------------------------------------------------
 class Loader:
-    """Reads views at working resolution and builds ViewGeoms; caches within one process."""
+    """Reads views at working resolution and builds ViewGeoms; caches within one process.
+
+    Memory stays bounded with the number of views (a 120-view 640x480 capture grew two workers to
+    9 GB each when every view's full ViewGeom was kept): every view keeps only its images and, per
+    reflector, a `Footprint` (beta support + M1 depth, what neighbour selection reads); full
+    ViewGeoms (surface and mirror-world points) are rebuilt on demand and kept in a small LRU."""
+
+    GEOM_CACHE = 16  # full ViewGeoms kept: a view + its <= 6 neighbours, with room to spare
 
     def __init__(self, ctx: StageContext):
+        from collections import OrderedDict
+
         from ..io.mesh import read_ply
         from ..render.raycast import build_scene
 
@@ -142,7 +159,10 @@ class Loader:
         self.G = G
         self.scene = build_scene(G.vertices, G.faces)
         self._raw: dict = {}
-        self._geo: dict = {}
+        self._geo: dict = {}   # masks
+        self._fp: dict = {}    # footprints
+        self._full: OrderedDict = OrderedDict()  # LRU of full ViewGeoms
+        self.first: dict = {}  # first-pass R of views (multi-view pass only)
 
     def camera(self, name):
         cam = self.cams[name]
@@ -172,10 +192,11 @@ class Loader:
         if not np.all(np.isfinite(depth)):
             raise InputError(f"{self.ws.path(dkey)}: depth has NaN/inf (0 means no depth)")
         wc = self.camera(name)
+        img = np.asarray(img, np.float32)  # kept for every view: float32 (ViewGeoms: float64)
         if wc is cam:
-            wi, wd = img.astype(np.float64), depth
+            wi, wd = img, depth
         else:
-            wi = cv2.resize(img, (wc.width, wc.height), interpolation=cv2.INTER_AREA).astype(np.float64)
+            wi = cv2.resize(img, (wc.width, wc.height), interpolation=cv2.INTER_AREA)
             wd = cv2.resize(depth, (wc.width, wc.height), interpolation=cv2.INTER_NEAREST)
         self._raw[name] = (img, depth, wc, wi, wd)
         return self._raw[name]
@@ -218,19 +239,50 @@ class Loader:
         poly = None if refl.get("polygon") is None else np.asarray(refl["polygon"])
         return reflector_mask(wc, refl["plane"], poly, wd, rel_tol=0.02)
 
-    def geom(self, name, refl):
+    def footprint(self, name, refl) -> "Footprint":
+        """The view's beta support and M1 depth for `refl` (mirror points cast into G, §4.3.1)."""
         key = (name, refl["name"])
-        if key in self._geo:
-            return self._geo[key]
+        if key not in self._fp:
+            import numpy as np
+
+            from ..geometry.planes import mirror_points
+            _, _, wc, _, _ = self.raw(name)
+            m = self.mask(name, refl)
+            _, D1 = mirror_points(wc, refl["plane"], m, self.scene, min_gap=self.cfg.min_gap,
+                                  bounds=(self.G.vertices.min(0), self.G.vertices.max(0)))
+            self._fp[key] = Footprint(name, wc, m, D1.astype(np.float32))
+        return self._fp[key]
+
+    def geom(self, name, refl):
+        """The full ViewGeom (LRU-cached). M1's points are rebuilt from the footprint's depth:
+        `mirror_points` puts every mirror-world point on its pixel's camera ray."""
+        key = (name, refl["name"])
+        if key in self._full:
+            self._full.move_to_end(key)
+            return self._full[key]
+        import numpy as np
+
         from ..geometry.decompose import ViewGeom
-        from ..geometry.planes import depth_points, mirror_points
+        from ..geometry.planes import depth_points
         _, _, wc, wi, wd = self.raw(name)
-        m = self.mask(name, refl)
-        X1, D1 = mirror_points(wc, refl["plane"], m, self.scene, min_gap=self.cfg.min_gap,
-                               bounds=(self.G.vertices.min(0), self.G.vertices.max(0)))
-        g = ViewGeom(name, wc, wi, wd, m, depth_points(wc, wd), X1, D1)
-        self._geo[key] = g
+        fp = self.footprint(name, refl)
+        D1 = fp.D1.astype(np.float64)
+        g = ViewGeom(name, wc, wi.astype(np.float64), wd, fp.mask, depth_points(wc, wd),
+                     depth_points(wc, D1), D1)
+        self._full[key] = g
+        while len(self._full) > self.GEOM_CACHE:
+            self._full.popitem(last=False)
         return g
+
+
+@dataclass
+class Footprint:
+    """What neighbour selection (`decompose.select_neighbours`) reads of another view."""
+
+    name: str
+    camera: object
+    mask: object  # (H, W) bool beta support
+    D1: object    # (H, W) float32 z-depth of M1 (0 = none)
 
 
 # --- reflector planes (shared by every view; computed once under a lock) --------------------------
@@ -351,10 +403,9 @@ def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> di
     mirror = refl.get("beta") == 1.0
     beta = float(refl.get("beta") or 1.0)
     ref = loader.geom(view, refl)
-    others = [loader.geom(o, refl) for o in loader.names if o != view]
+    others = [loader.footprint(o, refl) for o in loader.names if o != view]
     nbs_sel = select_neighbours(ref, [o for o in others if o.mask.sum() >= cfg.min_mask_pixels], opts)
-    byname = {o.name: o for o in others}
-    nbs = [byname[n] for n, _ in nbs_sel]
+    nbs = [loader.geom(n, refl) for n, _ in nbs_sel]
     info = {"name": refl["name"], "beta": beta, "mirror": mirror, "mask_pixels": int(ref.mask.sum()),
             "neighbours": [{"view": n, "overlap": round(f, 3)} for n, f in nbs_sel]}
     if not mirror and len(nbs) < cfg.min_neighbours:
@@ -365,25 +416,39 @@ def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> di
         prior = loader.prior(view, refl, loader.reflectors)
     res = decompose(ref, nbs, opts, beta=beta, mirror=mirror, R_prior=prior)
     history = [dict(h, **{"pass": 1}) for h in res["history"]]
-    loader._geo[("first", view, refl["name"])] = res["R"]
     if cfg.multiview and not mirror and nbs:  # §4.3.3: aggregate the neighbours' first pass
+        loader.first[(view, refl["name"])] = res["R"]
         prev = {}
         for nb in nbs:
-            nn = select_neighbours(nb, [o for o in [ref] + others if o.name != nb.name
+            nn = select_neighbours(nb, [o for o in [loader.footprint(view, refl)] + others
+                                        if o.name != nb.name
                                         and o.mask.sum() >= cfg.min_mask_pixels], opts)
             nbn = [loader.geom(n, refl) for n, _ in nn]
-            key = ("first", nb.name, refl["name"])
-            if key in loader._geo:  # first pass already computed by this worker
-                prev[nb.name] = loader._geo[key]
+            key = (nb.name, refl["name"])
+            if key in loader.first:  # first pass already computed by this worker
+                prev[nb.name] = loader.first[key]
             elif nbn:
                 nbp = loader.prior(nb.name, refl, loader.reflectors) if cfg.use_prior else None
-                prev[nb.name] = loader._geo[key] = decompose(nb, nbn, opts, beta=beta,
-                                                             R_prior=nbp)["R"]
+                prev[nb.name] = loader.first[key] = decompose(nb, nbn, opts, beta=beta,
+                                                              R_prior=nbp)["R"]
         res = decompose(ref, nbs, opts, beta=beta, aggregate_from=prev, R_init=res["R"],
                         R_prior=prior)
         history += [dict(h, **{"pass": 2}) for h in res["history"]]
     info.update(R=res["R"], pose=res["pose"], history=history, mask=ref.mask, geom=ref)
     return info
+
+
+def _simplify_m1(v, f, wc, cfg):
+    """M1 through view_mesh's adaptive quadric simplification (§4.2.3): the reference is M1's own
+    grid mesh rendered into the view, so its cut edges (mesh borders) and depth survive."""
+    import numpy as np
+
+    from ..geometry.grid_mesh import render_depth, simplify_adaptive
+    ref = render_depth(v.astype(np.float64), f, wc)
+    budget = max(200, int(round(cfg.m1_max_vertices_640x480 * wc.width * wc.height / (640 * 480))))
+    res = simplify_adaptive(v.astype(np.float64), f, wc, ref, budget, 200, cfg.m1_tol_score)
+    return (res.vertices.astype(np.float32), res.faces.astype(np.int32),
+            {"grid_faces": res.grid_faces, "faces": int(len(res.faces))})
 
 
 _LOADERS: dict = {}
@@ -448,6 +513,9 @@ def run(ctx: StageContext, view: str) -> None:
             c = np.nanmean(X1[m & (g.D1 > 0)], axis=0)
             X1 = (X1 - c) @ Rm.T + c + pose[3:]
         v, f = grid_mesh(X1, np.where(m, g.D1, 0.0), step=cfg.mesh_step)
+        if cfg.m1_simplify and len(f):
+            v, f, m1_steps = _simplify_m1(v, f, wc, cfg)
+            r["m1_simplify"] = m1_steps
         verts.append(v)
         faces.append(f + off)
         off += len(v)
@@ -477,6 +545,6 @@ def run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",
-              config=ReflectionConfig, version="3", run=run, per_view=True,
+              config=ReflectionConfig, version="4", run=run, per_view=True,
               inputs=inputs, view_inputs=view_inputs, view_outputs=view_outputs,
               views=registered_views)

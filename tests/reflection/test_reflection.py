@@ -206,3 +206,42 @@ def test_detect_auto_only_without_user_reflectors(tiny_ws):
     assert detect_enabled(ctx(detect="on")) and not detect_enabled(ctx(detect="off"))
     with pytest.raises(ConfigError):
         build_config(ReflectionConfig, "reflection", {"detect": "maybe"})
+
+
+def test_loader_footprints_and_simplified_m1(tiny_ws):
+    """The Loader keeps per-view footprints and rebuilds full ViewGeoms from them (bounded
+    memory): the rebuilt M1 points equal the ray-cast mirror points. The stored M1 is the
+    quadric-simplified grid: fewer triangles, same depth where it covers the view."""
+    from ibr_pipeline.bench.reflection import _loader
+    from ibr_pipeline.geometry.grid_mesh import render_depth
+    from ibr_pipeline.geometry.planes import mirror_points
+    from ibr_pipeline.io.mesh import read_ply
+    _, ws = tiny_ws
+    _, loader = _loader(ws, {"detect": "off"})
+    refl = [r for r in loader.reflectors if r["name"] == "mirror"][0]
+    checked = rendered = 0
+    for name in loader.names:
+        if loader.mask(name, refl).sum() < 100:
+            continue
+        g = loader.geom(name, refl)
+        X1, D1 = mirror_points(g.camera, refl["plane"], g.mask, loader.scene,
+                               min_gap=loader.cfg.min_gap,
+                               bounds=(loader.G.vertices.min(0), loader.G.vertices.max(0)))
+        assert np.array_equal(np.isnan(X1), np.isnan(g.X1))
+        ok = ~np.isnan(X1)
+        assert np.abs(X1[ok] - g.X1[ok]).max() < 1e-5  # float32 footprint depth, metres
+        rep = json.loads(ws.path(ws.view_file(name, "layers.json")).read_text())
+        r = [r for r in rep["reflectors"] if r["name"] == "mirror"]
+        if r and r[0].get("m1_simplify"):
+            s = r[0]["m1_simplify"]
+            assert s["faces"] <= s["grid_faces"]
+            if len(rep["reflectors"]) == 1 and not any(r[0]["pose"]):
+                M1 = read_ply(ws.path(ws.view_file(name, "M1.ply")))
+                d = render_depth(M1.vertices.astype(np.float64), M1.faces, g.camera)
+                both = (d > 0) & (D1 > 0)
+                assert both.sum() > 0.8 * (D1 > 0).sum()
+                assert np.median(np.abs(d - D1)[both] / D1[both]) < 0.005
+                rendered += 1
+        checked += 1
+    assert checked >= 1 and rendered >= 1
+    assert len(loader._full) <= loader.GEOM_CACHE
