@@ -37,13 +37,15 @@ class ViewDepthConfig(StageConfig):
                            "'near' = a G depth within mvs_agree_rel within mvs_check_radius px of "
                            "the projection (tolerates G's misplaced edges); 'roundtrip' = strict "
                            "forward-backward check (version 1)", choices=("near", "roundtrip"))
-    mvs_check_radius: int = param(1, "pixel tolerance of the 'near' check", min=0, max=8)
+    mvs_check_radius: int = param(1, "pixel tolerance of the 'near' check (pixels at 320x240, "
+                                  "scaled with the image width)", min=0, max=8)
     mvs_min_change: float = param(1.5, "keep G's depth where the MVS depth differs from it by at most "
                                   "this many Eq. 1 lambdas (MVS is noisier than G on surfaces); "
                                   "0 = off", min=0.0, max=100.0)
-    mvs_edge_guard: int = param(3, "drop MVS depths within this many pixels of an Eq. 1 edge inside "
-                                "the MVS depth (NCC windows straddling two surfaces; Eq. 2 refills "
-                                "them along colour edges); 0 = off", min=0, max=32)
+    mvs_edge_guard: int = param(3, "drop MVS depths within this many pixels (at 320x240, scaled "
+                                "with the image width) of an Eq. 1 edge inside the MVS depth (NCC "
+                                "windows straddling two surfaces; Eq. 2 refills them along colour "
+                                "edges); 0 = off", min=0, max=32)
     neighbours: int = param(4, "Eq. 2: geodesically nearest pixels outside the mask (Xu: 4)", min=1, max=16)
     cost_base: float = param(0.05, "geodesic cost per pixel step on a flat colour region", min=1e-4, max=10.0)
     cost_edge: float = param(15.0, "extra geodesic cost per pixel step across a full-strength colour "
@@ -51,7 +53,8 @@ class ViewDepthConfig(StageConfig):
     rounded_steps: bool = param(True, "also refine steps G has rounded into ramps (Eq. 1's planar "
                                 "distance between pixels 2s apart, parallel planes, at a colour "
                                 "edge: geometry/depth_rounded.py; an addition to Xu §4.2.1)")
-    rounded_strides: tuple[int, ...] = param((2, 3, 4), "half distances s (pixels) of the rounded-step test")
+    rounded_strides: tuple[int, ...] = param((2, 3, 4), "half distances s of the rounded-step test "
+                                             "(pixels at 320x240, scaled with the image width)")
     rounded_min_rel: float = param(1.0, "rounded-step test threshold, fraction of Eq. 1's lambda",
                                    min=0.1, max=10.0)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
@@ -78,6 +81,12 @@ def _sources(ctx: StageContext, view: str) -> list[str]:
         return []
     cams = registered_cameras(ctx.ws)
     return select_sources(cams[view], cams, k=ctx.config.sources, exclude=(view,))
+
+
+def pixel_scale(width: int) -> int:
+    """Integer factor for the pixel-valued parameters, given at the sample's 320x240: 1 up to
+    479 px wide, 2 at 640, 4 at 1280."""
+    return max(1, int(round(width / 320)))
 
 
 def view_inputs(ctx: StageContext, view: str) -> list[str]:
@@ -154,6 +163,10 @@ def _run(ctx: StageContext, view: str) -> None:
     t = time.perf_counter()
     depth0 = render_depth(scene, cam)
     timings["render_ms"] = 1000 * (time.perf_counter() - t)
+    # pixel-valued parameters of our additions (rounded-step strides, MVS edge guard and check
+    # radius) were tuned at 320x240: scaled with the width so that they cover the same image
+    # fraction at other sizes (at 640x480 the 2 cm TSDF ramps span twice as many pixels)
+    px = pixel_scale(cam.width)
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
     t = time.perf_counter()
     det = dr.detect(depth0, cam, cfg.lambda_rel, cfg.mask_side_m, cfg.mask_min_half_px)
@@ -164,11 +177,12 @@ def _run(ctx: StageContext, view: str) -> None:
 
         from ..geometry.depth_edges import refinement_mask
         from ..geometry.depth_rounded import canny_edges, rounded_steps
+        strides = tuple(px * int(s) for s in cfg.rounded_strides)
         rounded = rounded_steps(depth0, det.points, det.normals, canny_edges(image), cfg.lambda_rel,
-                                tuple(cfg.rounded_strides), cfg.rounded_min_rel) & ~mask
+                                strides, cfg.rounded_min_rel) & ~mask
         if rounded.any():
             f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
-            s = max(cfg.rounded_strides)
+            s = max(strides)
             extra = refinement_mask(rounded, depth0, f, cfg.mask_side_m, cfg.mask_min_half_px)
             extra |= cv2.dilate(rounded.astype(np.uint8), np.ones((2 * s + 1, 2 * s + 1), np.uint8)) > 0
             mask |= extra & (depth0 > 0)
@@ -187,8 +201,9 @@ def _run(ctx: StageContext, view: str) -> None:
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
                             min_consistent=cfg.mvs_min_consistent, agree_rel=cfg.mvs_agree_rel,
-                            device=cfg.device, check=cfg.mvs_check, check_radius=cfg.mvs_check_radius,
-                            min_change=cfg.mvs_min_change, guard_px=cfg.mvs_edge_guard,
+                            device=cfg.device, check=cfg.mvs_check,
+                            check_radius=px * cfg.mvs_check_radius,
+                            min_change=cfg.mvs_min_change, guard_px=px * cfg.mvs_edge_guard,
                             lambda_rel=cfg.lambda_rel)
         accepted = res.accepted
         depth1[accepted] = res.depth[accepted]
@@ -215,7 +230,7 @@ def _run(ctx: StageContext, view: str) -> None:
     write_image(ws.path(f"{vd}/mask.png"), (mask * 255).astype(np.uint8))
     ms = 1000 * (time.perf_counter() - t0)
     ws.write_json(f"{vd}/depth_report.json", {
-        "view": view, "size": [cam.width, cam.height],
+        "view": view, "size": [cam.width, cam.height], "pixel_scale": px,
         "edge_pixels_init": int(det.edge_pixels.sum()), "edge_pixels": int(final.edge_pixels.sum()),
         "mask_pixels": int(mask.sum()), "rounded_step_pixels": int(rounded.sum()), "mvs_accepted": int(accepted.sum()),
         "interpolated": int(filled.sum()),
@@ -226,6 +241,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="2", run=run, per_view=True,
+              config=ViewDepthConfig, version="3", run=run, per_view=True,
               inputs=(REGISTERED_CAMERAS, "global/mesh.ply"), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)

@@ -190,6 +190,8 @@ def test_stages_run_through_cli(tiny_ws, tiny_scene):
         assert np.median(np.abs(md - d)[hit]) < 0.01  # mesh fidelity (issue: median <= 1 cm)
         rep = json.loads((vd / "mesh_report.json").read_text())
         assert rep["vertices"] <= rep["budget_vertices"] * 1.1 + 200
+        from ibr_pipeline.stages.view_depth import pixel_scale
+        assert json.loads((vd / "depth_report.json").read_text())["pixel_scale"] == pixel_scale(cam.width)
     assert checked >= 2
     # the bench's simplification sweep covers 6 views (it counted rows, i.e. one view, before)
     from ibr_pipeline.bench.view_depth import evaluate
@@ -217,3 +219,9 @@ def test_bad_inputs(tiny_ws, tmp_path):
     shutil.copytree(tiny_ws, ws)
     (ws / "global" / "mesh.ply").write_bytes(b"not a mesh")
     assert main(["view_depth", str(ws), "--no-progress", "--force"]) != 0
+
+
+def test_pixel_parameters_scale_with_the_width():
+    """Strides / guard / check radius are given at 320x240 and keep their image fraction."""
+    from ibr_pipeline.stages.view_depth import pixel_scale
+    assert [pixel_scale(w) for w in (80, 160, 320, 479, 480, 640, 1280)] == [1, 1, 1, 1, 2, 2, 4]
