@@ -1,6 +1,6 @@
 """Benchmark of issue #5 (`view_depth`, `view_mesh`, Xu et al. §4.2) against synthetic ground truth.
 
-    python -m ibr_pipeline.bench.view_depth [--scene tiny|mirror_room] [--workspace WS]
+    python -m ibr_pipeline.bench.view_depth [--scene tiny|mirror_room | --scene-dir DIR] [--workspace WS]
            [--voxel 0.03] [--no-mvs] [--device cpu|cuda] [--output bench_view_depth.json]
 
 Without an existing global mesh in WS, the global mesh is an honestly imperfect stand-in: a TSDF
@@ -181,6 +181,9 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.view_depth", description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="tiny", choices=("tiny", "mirror_room"))
+    ap.add_argument("--scene-dir", type=Path,
+                    help="a synthetic scene folder with gt/ (e.g. the full-size one of `make "
+                         "demo-full`, with --workspace out/full --no-run); overrides --scene")
     ap.add_argument("--workspace", type=Path, help="reuse/keep this workspace (default: a temp dir)")
     ap.add_argument("--voxel", type=float, default=0.03)
     ap.add_argument("--no-mvs", action="store_true")
@@ -192,7 +195,11 @@ def main(argv=None) -> int:
                     help="only evaluate the views already in --workspace (e.g. after `ibr view_depth`)")
     a = ap.parse_args(argv)
     tmp = None
-    if a.scene == "mirror_room":
+    if a.scene_dir is not None:
+        scene = a.scene_dir
+        if not (scene / "gt" / "geom").is_dir():
+            ap.error(f"--scene-dir {scene}: no gt/geom folder (not a synthetic scene)")
+    elif a.scene == "mirror_room":
         scene = Path(__file__).resolve().parents[2] / "sample_data" / "mirror_room"
     else:
         from ..synthetic.generate import SynthOptions, generate
@@ -215,7 +222,7 @@ def main(argv=None) -> int:
     out = evaluate(scene, ws_dir)
     gm = json.loads((ws_dir / "global" / "report.json").read_text()) if (
         ws_dir / "global" / "report.json").is_file() else None
-    out["summary"].update(scene=a.scene, workspace=str(ws_dir), mvs=not a.no_mvs, device=a.device,
+    out["summary"].update(scene=str(a.scene_dir) if a.scene_dir else a.scene, workspace=str(ws_dir), mvs=not a.no_mvs, device=a.device,
                           global_mesh=("global_mesh stage (" + str(gm.get("dense")) + ")") if gm
                           else f"TSDF of GT depth, voxel {a.voxel} m", jobs=a.jobs,
                           wall_s_both_stages=wall,
