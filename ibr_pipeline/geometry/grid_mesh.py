@@ -101,13 +101,14 @@ class SimplifyResult:
     steps: list  # [{target, vertices, faces, score}] tried, in order
 
 
-def simplify_adaptive(vertices: np.ndarray, faces: np.ndarray, camera: Camera, ref_depth: np.ndarray,
-                      max_vertices: int, min_vertices: int = 200, tol_score: float = 0.002,
-                      agg: float = 7.0) -> SimplifyResult:
+def simplify_adaptive(vertices: np.ndarray, faces: np.ndarray, camera: Camera,
+                      ref_depth: np.ndarray | None, max_vertices: int, min_vertices: int = 200,
+                      tol_score: float = 0.002, agg: float = 7.0) -> SimplifyResult:
     """Quadric simplification (fast-simplification, preserve_border=True) to at most
     `max_vertices`, then through halving targets while the rendered depth's score (`depth_error`)
     stays within `tol_score` of the grid mesh's score (i.e. the mean relative depth error grows by
-    at most tol_score); the last mesh within tolerance is returned."""
+    at most tol_score); the last mesh within tolerance is returned. `ref_depth` None: the
+    reference is the input mesh's own depth in `camera` (rendered once)."""
     import fast_simplification as fs
 
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
@@ -116,7 +117,10 @@ def simplify_adaptive(vertices: np.ndarray, faces: np.ndarray, camera: Camera, r
     steps = []
     if nf0 == 0:
         return SimplifyResult(vertices, faces, nv0, nf0, steps)
-    base = depth_error(render_depth(vertices, faces, camera), ref_depth)["score"]
+    grid_depth = render_depth(vertices, faces, camera)
+    if ref_depth is None:
+        ref_depth = grid_depth
+    base = depth_error(grid_depth, ref_depth)["score"]
 
     def simp(v, f, target_faces):
         if target_faces >= len(f):

@@ -159,7 +159,8 @@ class Loader:
         self.G = G
         self.scene = build_scene(G.vertices, G.faces)
         self._raw: dict = {}
-        self._geo: dict = {}   # masks
+        self.bounds = (G.vertices.min(0), G.vertices.max(0))  # rays leaving G end on its box
+        self._masks: dict = {}
         self._fp: dict = {}    # footprints
         self._full: OrderedDict = OrderedDict()  # LRU of full ViewGeoms
         self.first: dict = {}  # first-pass R of views (multi-view pass only)
@@ -202,10 +203,10 @@ class Loader:
         return self._raw[name]
 
     def mask(self, name, refl):
-        key = ("mask", name, refl["name"])
-        if key not in self._geo:
-            self._geo[key] = self._mask(name, refl)
-        return self._geo[key]
+        key = (name, refl["name"])
+        if key not in self._masks:
+            self._masks[key] = self._mask(name, refl)
+        return self._masks[key]
 
     def prior(self, name, refl, reflectors):
         """beta * reflected-scene colour (H, W, 3), NaN where unobserved (reflection_prior.py)."""
@@ -249,7 +250,7 @@ class Loader:
             _, _, wc, _, _ = self.raw(name)
             m = self.mask(name, refl)
             _, D1 = mirror_points(wc, refl["plane"], m, self.scene, min_gap=self.cfg.min_gap,
-                                  bounds=(self.G.vertices.min(0), self.G.vertices.max(0)))
+                                  bounds=self.bounds)
             self._fp[key] = Footprint(name, wc, m, D1.astype(np.float32))
         return self._fp[key]
 
@@ -443,10 +444,9 @@ def _simplify_m1(v, f, wc, cfg):
     grid mesh rendered into the view, so its cut edges (mesh borders) and depth survive."""
     import numpy as np
 
-    from ..geometry.grid_mesh import render_depth, simplify_adaptive
-    ref = render_depth(v.astype(np.float64), f, wc)
+    from ..geometry.grid_mesh import simplify_adaptive
     budget = max(200, int(round(cfg.m1_max_vertices_640x480 * wc.width * wc.height / (640 * 480))))
-    res = simplify_adaptive(v.astype(np.float64), f, wc, ref, budget, 200, cfg.m1_tol_score)
+    res = simplify_adaptive(v.astype(np.float64), f, wc, None, budget, 200, cfg.m1_tol_score)
     return (res.vertices.astype(np.float32), res.faces.astype(np.int32),
             {"grid_faces": res.grid_faces, "faces": int(len(res.faces))})
 
