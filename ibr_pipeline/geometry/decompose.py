@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene import Camera
+from .block_pcg import _block_pcg  # moved out (module size); tests import it from here
 
 
 @dataclass
@@ -76,6 +77,13 @@ class DecomposeOptions:
     resolve_iterations: int = 50  # CG iterations of each warm-started active-set re-solve
     pose_samples: int = 20000  # data points used by the (R, T) LM steps (deterministic stride)
     lambda_scene: float = 0.5  # weight of the reflected-scene colour prior (reflection_prior.py)
+    # M1 vertices (Eq. 7 variables M^1, Eq. 9 mesh part; m1_vertices.py): relative depth offsets
+    optimise_m1_vertices: bool = False
+    lambda_lap: float = 0.04  # weight of E_lap = delta^T L_cot delta (paper: lambda_s = 0.04)
+    m1_cell: int = 16  # control-mesh spacing (working pixels)
+    m1_iterations: int = 5  # LM iterations per vertex step
+    m1_samples: int = 60000  # data points used by the LM iterations (deterministic stride)
+    m1_max_offset: float = 0.1  # |delta| bound (relative depth)
 
 
 def project(camera: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -247,40 +255,6 @@ def rodrigues(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) * Kx + (1 - np.cos(th)) * Kx @ Kx
 
 
-def _block_pcg(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray, iterations: int = 150,
-               tol: float = 1e-6) -> np.ndarray:
-    """Jacobi-preconditioned CG for H x = g with several right-hand sides (columns of g), the
-    variables where `free` is False held at their value in x0 (the active set of the box)."""
-    F = free.astype(np.float64)
-    xb = x0 * (1 - F)
-    rhs = F * (g - H @ xb)
-    dinv = 1.0 / np.maximum(H.diagonal(), 1e-12)[:, None]
-    x = x0 * F
-
-    def mv(v):
-        return F * (H @ (F * v))
-
-    r = rhs - mv(x)
-    z = dinv * r * F
-    p = z.copy()
-    rz = (r * z).sum(0)
-    n0 = np.sqrt((rhs ** 2).sum(0)) + 1e-30
-    for _ in range(iterations):
-        if np.all(np.sqrt((r ** 2).sum(0)) < tol * n0):
-            break
-        q = mv(p)
-        pq = (p * q).sum(0)
-        alpha = np.where(pq > 0, rz / np.where(pq > 0, pq, 1), 0.0)
-        x = x + alpha * p
-        r = r - alpha * q
-        z = dinv * r * F
-        rz_new = (r * z).sum(0)
-        beta = np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1), 0.0)
-        p = z + beta * p
-        rz = rz_new
-    return x + xb
-
-
 class Problem:
     """Eq. 7 for one view: E_d + lambda_s E_s + lambda_p E_p + lambda_mv E_mv over R = beta I1
     (I0 = I - R) inside the mask and the rigid transform (R, T) of M1.
@@ -334,6 +308,7 @@ class Problem:
         self.lambda_mv = 0.0
         self.r_max = 1.0
         self.prior = None  # (P, 3) beta * reflected-scene colour, NaN = unknown
+        self.offsets = None  # m1_vertices.M1Offsets when M1's vertices are optimised
 
     # -- helpers ---------------------------------------------------------------------------------
     def _x(self, R: np.ndarray) -> np.ndarray:
@@ -350,21 +325,24 @@ class Problem:
         w1 = np.exp(-np.abs(self.D @ x).sum(1))
         return w0, w1
 
-    def b_positions(self, pose, i, sub=None):
-        """b_q with M1 moved by (R, T): R^T (X - c - T) + c projected into the reference."""
+    def b_positions(self, pose, i, sub=None, offsets=True):
+        """b_q with M1 moved by (R, T): R^T (X - c - T) + c projected into the reference (+ the
+        first-order shift of M1's vertex offsets, m1_vertices.py)."""
         X = self.terms[i].X1 if sub is None else self.terms[i].X1[sub]
         Rm = rodrigues(pose[:3])
         Xm = (X - self.centre - pose[3:]) @ Rm + self.centre
         cam = self.ref.camera
         c = Xm @ cam.R.T + cam.t
         uv = c @ cam.K.T
+        if offsets and self.offsets is not None:
+            return uv[:, :2] / uv[:, 2:3] + self.offsets.shift(i, sub)
         return uv[:, :2] / uv[:, 2:3]
 
     def data_residual(self, R, pose):
         """E_d residuals (N, 3) for the images R and the pose of M1."""
         if not self.terms:
             return np.zeros((0, 3))
-        if not np.any(pose):
+        if not np.any(pose) and self.offsets is None:
             x = self._x(R)
             return self.A @ x - self.r
         out = []
@@ -392,9 +370,11 @@ class Problem:
         if self.prior is not None:
             k = np.all(np.isfinite(self.prior), axis=1)[:, None]
             Ec = float(((x - np.where(k, self.prior, 0.0)) ** 2 * k).sum())
+        Elap = 0.0 if self.offsets is None else self.offsets.e_lap()  # Eq. 9 mesh part
         E = Ed + o.lambda_s * Es + o.lambda_p * Ep + self.lambda_mv * Emv + o.lambda_scene * Ec
+        E += 0.0 if self.offsets is None else self.offsets.lam * Elap
         if parts:
-            return E, {"E_d": Ed, "E_s": Es, "E_p": Ep, "E_mv": Emv, "E_scene": Ec}
+            return E, {"E_d": Ed, "E_s": Es, "E_p": Ep, "E_mv": Emv, "E_scene": Ec, "E_lap": Elap}
         return E
 
     # -- image step ------------------------------------------------------------------------------
@@ -404,7 +384,7 @@ class Problem:
         import scipy.sparse as sp
         o = self.opts
         x0 = self._x(R0)
-        if np.any(self.pose):  # linearise the reflection sampling at the current pose
+        if np.any(self.pose) or self.offsets is not None:  # sampling at the current geometry
             As, rs = [], []
             for i, t in enumerate(self.terms):
                 Sa = bilinear_matrix(t.a, self.W, self.H)[:, self.flat]
@@ -560,6 +540,10 @@ def decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, bet
     R = np.zeros_like(ref.image)
     R[y0:y1, x0:x1] = res["R"]
     res["R"] = R
+    if res.get("m1_offset") is not None:  # relative depth offsets of M1 (m1_vertices.py)
+        off = np.zeros(ref.mask.shape)
+        off[y0:y1, x0:x1] = res["m1_offset"]
+        res["m1_offset"] = off
     return res
 
 
@@ -593,6 +577,10 @@ def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, be
     terms = build_data_terms(ref, nbs, opts)
     prob = Problem(ref, terms, opts)
     prob.r_max = beta
+    if opts.optimise_m1_vertices and terms:  # M1's vertices (Eq. 7, Eq. 9 mesh part)
+        from .m1_vertices import build_offsets, vertex_step
+        prob.offsets = build_offsets(ref, terms, {n.name: n.camera.center for n in nbs},
+                                     opts.m1_cell, opts.lambda_lap)
     if R_prior is not None:
         prob.prior = np.asarray(R_prior, np.float64).reshape(-1, 3)[prob.flat]
     if aggregate_from is not None:
@@ -605,7 +593,11 @@ def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, be
         R = prob.image_step(R, hist)
         if opts.optimise_pose and terms:
             prob.pose_step(R, hist)
+        if prob.offsets is not None:
+            vertex_step(prob, R, hist)
     E, parts = prob.energy(R, parts=True)
     hist.append({"step": "end", "energy": float(E), **parts})
     return {"R": R, "history": hist, "pose": prob.pose.tolist(),
-            "neighbours": [t.name for t in terms]}
+            "neighbours": [t.name for t in terms],
+            "m1_offset": None if prob.offsets is None else prob.offsets.pixel_offsets(
+                ref.mask.shape, ref.mask & (ref.D1 > 0))}
