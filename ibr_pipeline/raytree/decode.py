@@ -102,14 +102,21 @@ def reconstruct_normals(W: torch.Tensor, valid: torch.Tensor, eye: torch.Tensor 
 
 
 def decode(tree: RayTree, device: str | torch.device = "cpu", options: DecodeOptions | None = None,
-           timings: dict | None = None) -> Decoded:
-    """Decode every node in pre-order (§3.3). `timings` (if given) gets seconds per step."""
+           timings: dict | None = None, backend: str = "auto") -> Decoded:
+    """Decode every node in pre-order (§3.3). `timings` (if given) gets seconds per step.
+    backend (backend.resolve): "numba" decodes with the fused CPU kernels (warp_nb.decode, same
+    buffers) when the tree is supported there (first-level nodes, forward differences)."""
     import time
     opts = options or DecodeOptions()
     if opts.normals not in ("reconstruct", "exact"):
         raise ValueError(f"normals must be 'reconstruct' or 'exact', got {opts.normals!r}")
     if opts.normals == "exact" and tree.normal is None:
         raise ValueError("normals='exact' needs a ray tree with exact normals")
+    from .backend import resolve
+    if resolve(backend, device) == "numba":
+        from . import warp_nb
+        if warp_nb.supported(tree, opts):
+            return warp_nb.decode(tree, opts, timings)
     dev = torch.device(device)
     f32 = dict(device=dev, dtype=torch.float32)
     tic = time.perf_counter()

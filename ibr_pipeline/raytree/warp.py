@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from . import ops
+from .backend import resolve
 from .decode import DecodeOptions, Decoded, decode, eta_of
 from .diffuse import diffuse_flow, projection_matrix
 from .encoding import FRESNEL_DIELECTRIC, FRESNEL_NONE, FRESNEL_PANE, REFLECTIVE, RayTree
@@ -34,9 +35,14 @@ class WarpOptions:
     fpi_eps: float = 0.5      # fixed-point convergence threshold, new-image pixels (§3.4)
     rel_tol: float = 0.05     # depth-discontinuity tolerance of the diffuse sampler
     fill: bool = True         # §3.5 push-pull hole filling
+    backend: str = "auto"     # "torch" (eager reference, CPU / CUDA), "numba" (fused CPU kernels,
+                              # warp_nb.py) or "auto": numba for CPU tensors when it imports
 
     def validate(self) -> None:
         from ..errors import InputError
+        from .backend import BACKENDS
+        if self.backend not in BACKENDS:
+            raise InputError(f"warp option backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}")
         s = self.specular
         for name, val, lo, hi in (("steps", s.steps, 0, 1000), ("eps_deg", s.eps_deg, 1e-4, 90),
                                   ("step_scale", s.step_scale, 1e-4, 10),
@@ -160,7 +166,11 @@ def _node_tables(dec: Decoded, i: int, rel_tol: float, div_tol: float = 0.0):
 
 def warp_decoded(dec: Decoded, camera, options: WarpOptions | None = None,
                  record_history: bool = False) -> WarpResult:
-    """Warp a decoded ray tree to `camera` (scene.Camera, any size)."""
+    """Warp a decoded ray tree to `camera` (scene.Camera, any size); options.backend chooses the
+    torch code (below) or the numba kernels (warp_nb.warp_decoded, CPU)."""
+    if resolve((options or WarpOptions()).backend, dec.device) == "numba":
+        from . import warp_nb
+        return warp_nb.warp_decoded(dec, camera, options or WarpOptions(), record_history)
     with torch.inference_mode():
         return _warp_decoded(dec, camera, options, record_history)
 
@@ -310,6 +320,9 @@ def naive_warp(dec: Decoded, camera, options: WarpOptions | None = None) -> np.n
     o = options or WarpOptions()
     dev = dec.device
     Wn, Hn = camera.width, camera.height
+    if resolve(o.backend, dev) == "numba":   # the same flow / fill kernels as warp_nb.warp_decoded
+        from . import warp_nb
+        return warp_nb.naive_warp(dec, camera, o)
     with torch.inference_mode():
         P_new = projection_matrix(camera.K, camera.cam_from_world, dev)
         sampler = _root_tables(dec, o.rel_tol)[0]
@@ -331,12 +344,18 @@ def warp(tree: RayTree, camera, options: WarpOptions | None = None, device: str 
     o.validate()
     t0 = time.perf_counter()
     tm: dict[str, float] = {}
-    dec = decode(tree, device, o.decode, tm)
+    dec = decode(tree, device, o.decode, tm, backend=o.backend)
     t1 = time.perf_counter()
-    with torch.inference_mode():   # per-tree tables (samplers, channel-first buffers), §3.3
-        _root_tables(dec, o.rel_tol)
+    if resolve(o.backend, dec.device) == "numba":
+        from . import warp_nb
+        warp_nb.root_tables(dec, o.rel_tol)
         for i in range(1, tree.n_nodes):
-            _node_tables(dec, i, o.specular.rel_tol, o.specular.div_tol)
+            warp_nb.node_tables(dec, i, o.specular.rel_tol, o.specular.div_tol)
+    else:
+        with torch.inference_mode():   # per-tree tables (samplers, channel-first buffers), §3.3
+            _root_tables(dec, o.rel_tol)
+            for i in range(1, tree.n_nodes):
+                _node_tables(dec, i, o.specular.rel_tol, o.specular.div_tol)
     tm["decode_tables"] = _sync_time(dec.device, t1)
     res = warp_decoded(dec, camera, o, record_history)
     res.timings = {**tm, **res.timings, "total": _sync_time(dec.device, t0)}
