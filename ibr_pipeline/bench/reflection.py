@@ -2,7 +2,7 @@
 
     .venv/bin/python -m ibr_pipeline.bench.reflection [--scene tiny|mirror_room] [--out DIR]
         [--repeats 3] [--scale 1.0] [--ablation [--rows 0,4]] [--heldout] [--timing]
-        [--depth-noise 0.01]
+        [--depth-noise 0.01] [--m1-noise 0.02]
 
 Builds a workspace whose upstream outputs are the exact synthetic geometry (global/cameras.json,
 global/mesh.ply = gt/mesh.ply, views/<v>/depth.npy from gt/geom, a grid mesh.ply), runs the stage
@@ -137,27 +137,51 @@ def plane_accuracy(ws, scene: Path) -> list[dict]:
 # --- ablation and held-out re-rendering (issue #6 accuracy items 3 and 4) -----------------------
 # Both call the stage's own per-reflector decomposition (`stages.reflection._decompose_reflector`)
 # on a Loader of the workspace, in float (no 8-bit PNG round trip), one config per row.
+_NO_V = {"optimise_m1_vertices": False}  # rows 0-6 as measured before M1's vertices existed
 ABLATION = [  # cumulative rows of the issue's table, then the additions of this implementation
-    ("init only (Eq. 6, no warp)", {"use_warp": False, "outer_iterations": 0, "use_prior": False}),
-    ("+ optimisation (Eq. 7)", {"use_warp": False, "use_prior": False}),
+    ("init only (Eq. 6, no warp)", {"use_warp": False, "outer_iterations": 0, "use_prior": False,
+                                    **_NO_V}),
+    ("+ optimisation (Eq. 7)", {"use_warp": False, "use_prior": False, **_NO_V}),
     ("+ multi-view consistency (Eqs. 11-13)", {"use_warp": False, "use_prior": False,
-                                               "multiview": True}),
-    ("+ ARAP warp (Eqs. 4-5) = paper", {"use_prior": False, "multiview": True}),
-    ("init only + ARAP warp", {"outer_iterations": 0, "use_prior": False}),
-    ("paper without multi-view", {"use_prior": False}),
-    ("+ reflected-scene prior, multi-view", {"multiview": True}),
+                                               "multiview": True, **_NO_V}),
+    ("+ ARAP warp (Eqs. 4-5) = paper", {"use_prior": False, "multiview": True, **_NO_V}),
+    ("init only + ARAP warp", {"outer_iterations": 0, "use_prior": False, **_NO_V}),
+    ("paper without multi-view", {"use_prior": False, **_NO_V}),
+    ("+ reflected-scene prior, multi-view", {"multiview": True, **_NO_V}),
     ("stage defaults (prior, no multi-view)", {}),
+    ("stage defaults, M1 vertices off", {"optimise_m1_vertices": False}),
+    ("+ M1 vertices (cotangent Laplacian)", {"optimise_m1_vertices": True}),
+    ("paper without multi-view + M1 vertices", {"use_prior": False, "optimise_m1_vertices": True}),
 ]
 
 
-def _loader(ws, over: dict):
+def _loader(ws, over: dict, m1_noise: float = 0.0):
+    """The stage's Loader on `ws`. m1_noise > 0: every view's M1 depth (its mirror-world points)
+    is multiplied by 1 + a smooth random field of that std (independent per view, like the
+    depth noise): M1 errors that the vertex optimisation can fix (G and the planes stay exact).
+    `loader.m1_true[(view, reflector)]` keeps the unperturbed M1 depth."""
     from ..config import build_config
     from ..runner import StageContext
-    from ..stages.reflection import Loader, ReflectionConfig, get_planes
+    from ..stages.reflection import Footprint, Loader, ReflectionConfig, get_planes
     ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", over),
                        ws.scene())
     loader = Loader(ctx)
     loader.reflectors = get_planes(ctx, loader)["reflectors"]
+    loader.m1_true = {}
+    footprint = loader.footprint
+
+    def noisy_footprint(name, refl):
+        key = (name, refl["name"])
+        fresh = key not in loader._fp
+        fp = footprint(name, refl)
+        if fresh:
+            loader.m1_true[key] = fp.D1.copy()
+            if m1_noise > 0:
+                f = _smooth_noise(fp.D1.shape, m1_noise, zlib.crc32(f"m1/{name}/{key[1]}".encode()))
+                loader._fp[key] = fp = Footprint(fp.name, fp.camera, fp.mask,
+                                                 (fp.D1 * (1 + f)).astype(np.float32))
+        return fp
+    loader.footprint = noisy_footprint
     return ctx, loader
 
 
@@ -170,12 +194,13 @@ def _psnr(a, b) -> float:
     return float("inf") if mse == 0 else float(10 * np.log10(1 / mse))
 
 
-def ablation(ws, scene: Path, base: dict, rows=None) -> list[dict]:
+def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> list[dict]:
     """PSNR of I0 and beta*I1 vs the GT layers inside each (non-mirror) reflector's mask, median
-    over the views, for each configuration row (`ABLATION`). Mirrors are exact in every row."""
+    over the views, for each configuration row (`ABLATION`). Mirrors are exact in every row.
+    Also M1's depth error in the mask (mean |D1 (1 + delta) / D1_true - 1|, median over views)."""
     from ..config import build_config
     from ..stages.reflection import ReflectionConfig, _decompose_reflector, options
-    _, loader = _loader(ws, base)
+    _, loader = _loader(ws, base, m1_noise)
     out = []
     for label, over in rows or ABLATION:
         cfg = build_config(ReflectionConfig, "reflection", base, over)
@@ -190,7 +215,7 @@ def ablation(ws, scene: Path, base: dict, rows=None) -> list[dict]:
                     continue
                 info = _decompose_reflector(loader, v, refl, opts, cfg)
                 d = per.setdefault(refl["name"], {"I0": [], "betaI1": [], "discarded": 0,
-                                                  "warp": []})
+                                                  "warp": [], "m1": []})
                 for h in info.get("history", []):  # Eq. 5 energy after / before the GN warp
                     for e in (h.get("warp_energy") or {}).values():
                         if e and e[0] > 0:
@@ -202,6 +227,12 @@ def ablation(ws, scene: Path, base: dict, rows=None) -> list[dict]:
                 if m.sum() < 50:
                     continue
                 I, R = info["geom"].image, info["R"]
+                g = info["geom"]
+                D1 = g.D1 * (1 + (info.get("m1_offset") if info.get("m1_offset") is not None
+                                  else 0.0))
+                true = loader.m1_true[(v, refl["name"])]
+                k = info["mask"] & (true > 0) & (g.D1 > 0)
+                d["m1"].append(float(np.mean(np.abs(D1[k] / true[k] - 1))) if k.any() else 0.0)
                 d["I0"].append(_psnr((I - R)[m], g0[m]))
                 d["betaI1"].append(_psnr(R[m], (gb[..., None] * g1)[m]))
         row = {"row": label, "config": over, "seconds": time.perf_counter() - t0,
@@ -211,6 +242,7 @@ def ablation(ws, scene: Path, base: dict, rows=None) -> list[dict]:
                          "betaI1_psnr": float(np.median(d["betaI1"])) if d["betaI1"] else None,
                          "I0_per_view": [round(x, 2) for x in d["I0"]], "views": len(d["I0"]),
                          "warp_energy_ratio": float(np.median(d["warp"])) if d["warp"] else None,
+                         "m1_depth_error": float(np.median(d["m1"])) if d["m1"] else None,
                          "discarded": d["discarded"]}
         out.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "config"}), flush=True)
@@ -237,7 +269,7 @@ def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
     return tg.image[sel][ok], lay, sample_bilinear(kg.image, a), extra, float(ok.mean())
 
 
-def heldout(ws, scene: Path, base: dict, neighbours: int = 2) -> dict:
+def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 0.0) -> dict:
     """Leave-one-out re-rendering: every capture view t that sees a reflector is held out (the
     decompositions of its nearest views k are recomputed without t: t is neither a neighbour nor
     a prior source), t's reflector pixels are predicted from k's layers and from k's unsplit
@@ -246,7 +278,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2) -> dict:
     from ..config import build_config
     from ..geometry.decompose import pose_distance
     from ..stages.reflection import ReflectionConfig, _decompose_reflector, options
-    _, loader = _loader(ws, base)
+    _, loader = _loader(ws, base, m1_noise)
     cfg = build_config(ReflectionConfig, "reflection", base)
     opts = options(cfg)
     names = list(loader.names)
@@ -345,6 +377,12 @@ def main(argv=None) -> int:
     ap.add_argument("--heldout-neighbours", type=int, default=2)
     ap.add_argument("--depth-noise", type=float, default=0.0,
                     help="smooth relative depth error of the GT workspace (MVS-like), e.g. 0.01")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="reflection config override for --ablation / --heldout / --timing "
+                         "(repeatable; VALUE parsed as JSON, e.g. optimise_m1_vertices=false)")
+    ap.add_argument("--m1-noise", type=float, default=0.0,
+                    help="--ablation / --heldout: smooth relative error of every view's M1 depth "
+                         "(mirror-world points), e.g. 0.02 (what M1's vertex optimisation fixes)")
     args = ap.parse_args(argv)
     if args.workspace is not None:
         return _score_workspace(args)
@@ -361,16 +399,19 @@ def main(argv=None) -> int:
     if ws_dir.exists():
         shutil.rmtree(ws_dir)
     ws = make_gt_workspace(scene, ws_dir, depth_noise=args.depth_noise)
-    result: dict = {"scene": str(scene), "work_scale": args.scale, "depth_noise": args.depth_noise}
+    result: dict = {"scene": str(scene), "work_scale": args.scale, "depth_noise": args.depth_noise,
+                    "m1_noise": args.m1_noise}
     if args.ablation or args.heldout or args.timing:
-        base = {"work_scale": args.scale, "detect": "off"}
+        sets = {k: _json_or_str(v) for k, v in (a.split("=", 1) for a in args.set)}
+        result["set"] = sets
+        base = {"work_scale": args.scale, "detect": "off", **sets}
         if args.ablation:
             rows = ([ABLATION[int(i)] for i in args.rows.split(",")] if args.rows else None)
-            result["ablation"] = ablation(ws, scene, base, rows)
+            result["ablation"] = ablation(ws, scene, base, rows, args.m1_noise)
         if args.heldout:
-            result["heldout"] = heldout(ws, scene, base, args.heldout_neighbours)
+            result["heldout"] = heldout(ws, scene, base, args.heldout_neighbours, args.m1_noise)
         if args.timing:
-            result["timing"] = timing(ws, {"work_scale": args.scale})
+            result["timing"] = timing(ws, {"work_scale": args.scale, **sets})
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
         print(json.dumps(result, indent=1))
@@ -411,6 +452,13 @@ def main(argv=None) -> int:
     (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))
     return 0
+
+
+def _json_or_str(v: str):
+    try:
+        return json.loads(v)
+    except json.JSONDecodeError:
+        return v
 
 
 def _timings(ws) -> dict:

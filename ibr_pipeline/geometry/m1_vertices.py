@@ -153,17 +153,27 @@ def build_offsets(ref: ViewGeom, terms: list[DataTerm], centres: dict, cell: int
     return M1Offsets(mesh, L, Ws, Js, es, np.zeros(len(mesh.xy)), float(lam))
 
 
-def _sobel(R: np.ndarray):
-    import cv2
-    R32 = R.astype(np.float32)
-    gx = np.stack([cv2.Sobel(R32[..., c], cv2.CV_32F, 1, 0, ksize=3) / 8 for c in range(3)], -1)
-    gy = np.stack([cv2.Sobel(R32[..., c], cv2.CV_32F, 0, 1, ksize=3) / 8 for c in range(3)], -1)
-    return gx, gy
+def bilinear_gradient(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """(N, C, 2) exact d/dx, d/dy of `sample_bilinear(img, pos)` (the bilinear model's own slope
+    inside each cell, positions clamped like the sampler). A smoothed (Sobel) image gradient has
+    the wrong sign where R varies at the pixel scale, and the offsets move b by tenths of pixels."""
+    img = np.asarray(img, np.float64)
+    if img.ndim != 3 or np.ndim(pos) != 2 or np.shape(pos)[1] != 2:
+        raise ValueError(f"need (H, W, C) and (N, 2), got {img.shape}, {np.shape(pos)}")
+    H, W = img.shape[:2]
+    x = np.clip(pos[:, 0], 0, W - 1)
+    y = np.clip(pos[:, 1], 0, H - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
+    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    a, b, c, d = img[y0, x0], img[y0, x1], img[y1, x0], img[y1, x1]
+    return np.stack([(1 - ay) * (b - a) + ay * (d - c), (1 - ax) * (c - a) + ax * (d - b)], -1)
 
 
 def vertex_step(prob, R: np.ndarray, history: list) -> None:
     """Minimise E_d + lambda_lap E_lap over the M1 offsets with the images and (R, T) fixed:
-    Gauss-Newton / Levenberg-Marquardt with the analytic image gradient on a deterministic subset
+    Gauss-Newton / Levenberg-Marquardt with the exact bilinear image gradient on a deterministic subset
     of the data points (as the (R, T) step), accepted only if the full Eq. 7 energy drops."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
@@ -185,7 +195,6 @@ def vertex_step(prob, R: np.ndarray, history: list) -> None:
     Wm = sp.vstack([off.W[i][s] for i, s in enumerate(subs)]).tocsr()
     Jq = np.concatenate([off.J[i][s] for i, s in enumerate(subs)])
     eps = np.concatenate([off.eps[i][s] for i, s in enumerate(subs)])
-    gx, gy = _sobel(R)
     lam, L = off.lam, off.L
     ridge = 1e-6 * sp.identity(V)
 
@@ -198,7 +207,7 @@ def vertex_step(prob, R: np.ndarray, history: list) -> None:
     b, r, e = evaluate(d)
     energies, mu = [e], 1e-3
     for _ in range(o.m1_iterations):  # Gauss-Newton / LM
-        G = np.stack([sample_bilinear(gx, b), sample_bilinear(gy, b)], -1)  # (N, 3, 2)
+        G = bilinear_gradient(R, b)  # (N, 3, 2)
         s = np.einsum("ncd,nd->nc", G, Jq)  # d r_c / d(offset at q)
         JtJ = sum(Wm.T @ sp.diags(s[:, c] ** 2) @ Wm for c in range(3))
         Jtr = sum(Wm.T @ (s[:, c] * r[:, c]) for c in range(3))

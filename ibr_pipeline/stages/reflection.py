@@ -82,6 +82,17 @@ class ReflectionConfig(StageConfig):
     lambda_scene: float = param(2.0, "weight of that prior in the image step", min=0.0, max=1e4)
     prior_tol: float = param(0.03, "depth tolerance (x depth) of the prior's visibility test",
                              min=1e-4, max=1.0)
+    optimise_m1_vertices: bool = param(False, "optimise M1's vertices (Eq. 7 variables M^1, with "
+                                       "the cotangent-Laplacian term of Eq. 9): relative depth "
+                                       "offsets of a control grid along the view's rays "
+                                       "(geometry/m1_vertices.py); off by default: no PSNR gain on "
+                                       "the bench, see docs/REFLECTION.md")
+    lambda_lap: float = param(0.04, "weight of E_lap = delta^T L_cot delta (= the integral of "
+                              "|grad delta|^2 over the pixels; paper: lambda_s = 0.04 for E_s)",
+                              min=0.0, max=1e6)
+    m1_cell_640: int = param(16, "M1 control-grid spacing in pixels at 640 px width (scaled with "
+                             "the working width; the 40x30 warp grid's cell)", min=2, max=512)
+    m1_iterations: int = param(5, "LM iterations per M1 vertex step", min=0, max=1000)
     mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
     m1_simplify: bool = param(True, "quadric-simplify M1 like the per-view surface mesh (§4.2.3, "
                               "view_mesh's adaptive target): flat reflected walls need few "
@@ -106,7 +117,9 @@ def options(cfg: ReflectionConfig):
         gn_iterations=cfg.gn_iterations, use_warp=cfg.use_warp, lambda_s=cfg.lambda_s,
         lambda_p=cfg.lambda_p, lambda_mv=cfg.lambda_mv, outer_iterations=cfg.outer_iterations,
         image_iterations=cfg.image_iterations, cg_iterations=cfg.image_iterations, pose_iterations=cfg.pose_iterations,
-        saturation=cfg.saturation, lambda_scene=cfg.lambda_scene if cfg.use_prior else 0.0)
+        saturation=cfg.saturation, lambda_scene=cfg.lambda_scene if cfg.use_prior else 0.0,
+        optimise_m1_vertices=cfg.optimise_m1_vertices, lambda_lap=cfg.lambda_lap,
+        m1_iterations=cfg.m1_iterations)
 
 
 # --- declarations -------------------------------------------------------------------------------
@@ -400,10 +413,15 @@ def get_planes(ctx, loader: Loader) -> dict:
 
 # --- the per-view task --------------------------------------------------------------------------
 def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> dict:
+    from dataclasses import replace
+
+    import numpy as np
+
     from ..geometry.decompose import decompose, select_neighbours
     mirror = refl.get("beta") == 1.0
     beta = float(refl.get("beta") or 1.0)
     ref = loader.geom(view, refl)
+    opts = replace(opts, m1_cell=max(2, round(cfg.m1_cell_640 * ref.camera.width / 640)))
     others = [loader.footprint(o, refl) for o in loader.names if o != view]
     nbs_sel = select_neighbours(ref, [o for o in others if o.mask.sum() >= cfg.min_mask_pixels], opts)
     nbs = [loader.geom(n, refl) for n, _ in nbs_sel]
@@ -435,7 +453,12 @@ def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> di
         res = decompose(ref, nbs, opts, beta=beta, aggregate_from=prev, R_init=res["R"],
                         R_prior=prior)
         history += [dict(h, **{"pass": 2}) for h in res["history"]]
-    info.update(R=res["R"], pose=res["pose"], history=history, mask=ref.mask, geom=ref)
+    info.update(R=res["R"], pose=res["pose"], history=history, mask=ref.mask, geom=ref,
+                m1_offset=res.get("m1_offset"))
+    if info["m1_offset"] is not None:  # relative depth offsets of M1's vertices (Eq. 7)
+        o = np.abs(info["m1_offset"][ref.mask])
+        info["m1_offsets"] = {"mean_abs": round(float(o.mean()), 5) if o.size else 0.0,
+                              "max_abs": round(float(o.max()), 5) if o.size else 0.0}
     return info
 
 
@@ -449,6 +472,27 @@ def _simplify_m1(v, f, wc, cfg):
     res = simplify_adaptive(v.astype(np.float64), f, wc, None, budget, 200, cfg.m1_tol_score)
     return (res.vertices.astype(np.float32), res.faces.astype(np.int32),
             {"grid_faces": res.grid_faces, "faces": int(len(res.faces))})
+
+
+def optimised_m1(g, mask, offset, pose):
+    """M1's points and z-depth after the geometry step (Eq. 7): the vertex offsets move each point
+    along the view's ray to depth D1 (1 + offset) (m1_vertices.py), then the rigid (R, T) about
+    the centre of the initial M1 (decompose.Problem.centre). Returns (H, W, 3) and (H, W)."""
+    import numpy as np
+
+    from ..geometry.decompose import rodrigues
+    X1, D1 = g.X1.copy(), g.D1
+    sel = mask & (g.D1 > 0)
+    c = np.nanmean(X1[sel], axis=0) if sel.any() else np.zeros(3)
+    if offset is not None:
+        if np.shape(offset) != np.shape(D1):
+            raise ValueError(f"offset must be {np.shape(D1)}, got {np.shape(offset)}")
+        X1 = g.camera.center + (X1 - g.camera.center) * (1 + offset)[..., None]
+        D1 = D1 * (1 + offset)
+    pose = np.asarray(pose, np.float64)
+    if np.any(pose != 0):
+        X1 = (X1 - c) @ rodrigues(pose[:3]).T + c + pose[3:]
+    return X1, D1
 
 
 _LOADERS: dict = {}
@@ -471,7 +515,6 @@ def run(ctx: StageContext, view: str) -> None:
     import cv2
     import numpy as np
 
-    from ..geometry.decompose import rodrigues
     from ..geometry.planes import grid_mesh
     from ..io.images import write_image
     from ..io.mesh import Mesh, read_ply, write_ply
@@ -505,14 +548,8 @@ def run(ctx: StageContext, view: str) -> None:
         m = r["mask"]
         beta_w[m] = r["beta"]
         R_w[m] = r["R"][m]
-        g = r["geom"]
-        X1 = g.X1.copy()
-        pose = np.asarray(r["pose"])
-        if np.any(pose != 0):  # the optimised rigid transform of M1 (Eq. 7)
-            Rm = rodrigues(pose[:3])
-            c = np.nanmean(X1[m & (g.D1 > 0)], axis=0)
-            X1 = (X1 - c) @ Rm.T + c + pose[3:]
-        v, f = grid_mesh(X1, np.where(m, g.D1, 0.0), step=cfg.mesh_step)
+        X1, D1 = optimised_m1(r["geom"], m, r.get("m1_offset"), r["pose"])
+        v, f = grid_mesh(X1, np.where(m, D1, 0.0), step=cfg.mesh_step)
         if cfg.m1_simplify and len(f):
             v, f, m1_steps = _simplify_m1(v, f, wc, cfg)
             r["m1_simplify"] = m1_steps
@@ -539,12 +576,13 @@ def run(ctx: StageContext, view: str) -> None:
               Mesh(np.concatenate(verts), np.concatenate(faces)), comment="mirror-world geometry")
     main = max(results, key=lambda r: r["mask_pixels"])
     report["reflector"] = main["name"]
-    report["reflectors"] = [{k: v for k, v in r.items() if k not in ("R", "mask", "geom")}
+    report["reflectors"] = [{k: v for k, v in r.items() if k not in ("R", "mask", "geom",
+                                                                      "m1_offset")}
                             for r in results]
     ws.write_json(ws.view_file(view, "layers.json"), report)
 
 
 STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",
-              config=ReflectionConfig, version="4", run=run, per_view=True,
+              config=ReflectionConfig, version="5", run=run, per_view=True,
               inputs=inputs, view_inputs=view_inputs, view_outputs=view_outputs,
               views=registered_views)
