@@ -28,7 +28,7 @@ F_NONE, F_DIELECTRIC, F_PANE = 0, 1, 2  # encoding.FRESNEL_*
 
 
 # ---------------------------------------------------------------- per-location helpers
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cell(qx, qy, W, H):
     """ops.cell: flat top-left tap, fractions and `inside` (within half a pixel of the grid)."""
     if not (qx == qx and qy == qy):   # NaN: outside
@@ -41,7 +41,7 @@ def _cell(qx, qy, W, H):
     return y0 * W + x0, xc - x0, yc - y0, inside
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _nearest(i0, fx, fy, smooth, inside, valid, dx, dy):
     """ops.Sampler.taps: the heaviest tap; where the quad is not smooth the heaviest *valid* one
     (first of equal weights), -1 if none or outside."""
@@ -59,7 +59,7 @@ def _nearest(i0, fx, fy, smooth, inside, valid, dx, dy):
     return best
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _bilin(img, c, i0, fx, fy, dx, dy):
     """Bilinear value of channel c of (P, C) img in the quad at i0 (= F.grid_sample there)."""
     gx, gy = 1.0 - fx, 1.0 - fy
@@ -67,14 +67,14 @@ def _bilin(img, c, i0, fx, fy, dx, dy):
             + fx * fy * img[i0 + dx + dy, c])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _norm3(x, y, z):
     """ops.normalize: v / |v| with |v|^2 clamped at 1e-24 (the zero vector stays zero)."""
     s = 1.0 / math.sqrt(max(x * x + y * y + z * z, 1e-24))
     return x * s, y * s, z * s
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _rs_rp(cos_i, eta):
     cos_i = min(abs(cos_i), 1.0)
     sin_t2 = eta * eta * (1.0 - cos_i * cos_i)
@@ -86,7 +86,7 @@ def _rs_rp(cos_i, eta):
     return rs * rs, rp * rp
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _fresnel(code, cos_i, ior):
     """warp.fresnel_weight: dielectric Fresnel, thin-pane reflectance or 1 (no Fresnel model)."""
     if ior <= 0:
@@ -100,7 +100,7 @@ def _fresnel(code, cos_i, ior):
     return 1.0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _eta(ior, code):
     """decode.eta_of: n_air / n_material; 1 for a thin pane or where no IOR is given."""
     if code == F_PANE or ior <= 0:
@@ -125,6 +125,37 @@ def unproject(depth, K, T, out):
 
 
 @njit(cache=True, parallel=True)
+def unpack_valid(bits, depth):
+    """Per-node validity (n, H, W) from the bit mask (§3.2); the root also needs depth > 0."""
+    n, H, W = depth.shape
+    out = np.empty((n, H, W), np.bool_)
+    for y in prange(H):
+        for x in range(W):
+            b = bits[y, x]
+            out[0, y, x] = (b & 1) != 0 and depth[0, y, x] > 0
+            for i in range(1, n):
+                out[i, y, x] = ((b >> i) & 1) != 0
+    return out
+
+
+@njit(cache=True, parallel=True)
+def root_labels(valid, fres):
+    """Node bits of every old pixel (H*W,) and the sampler label bits * 4 + Fresnel code (H, W)."""
+    n, H, W = valid.shape
+    bits = np.zeros(H * W, np.int32)
+    label = np.empty((H, W), np.int32)
+    for y in prange(H):
+        for x in range(W):
+            b = 0
+            for i in range(n):
+                if valid[i, y, x]:
+                    b |= 1 << i
+            bits[y * W + x] = b
+            label[y, x] = b * 4 + fres[y, x]
+    return bits, label
+
+
+@njit(cache=True, parallel=True)
 def normals_box(Wd, valid, eye, y0, y1, x0, x1, kern, out):
     """§3.3 "Normals" on the crop (y0:y1, x0:x1) as its own image (= decode.reconstruct_normals
     of the crop, forward differences): n = (W(l+(0,1)) - W(l)) x (W(l+(1,0)) - W(l)) (backward
@@ -135,36 +166,7 @@ def normals_box(Wd, valid, eye, y0, y1, x0, x1, kern, out):
     r = len(kern) // 2
     A = np.zeros((h, w, 4))
     for i in prange(h):
-        y = y0 + i
-        for j in range(w):
-            x = x0 + j
-            if not valid[y, x]:
-                continue
-            dv = np.zeros(6)   # dy (3), dx (3)
-            okd = True
-            for ax in range(2):
-                sy, sx = (1, 0) if ax == 0 else (0, 1)
-                last = (i == h - 1) if ax == 0 else (j == w - 1)
-                first = (i == 0) if ax == 0 else (j == 0)
-                if not last and valid[y + sy, x + sx]:
-                    for k in range(3):
-                        dv[3 * ax + k] = Wd[y + sy, x + sx, k] - Wd[y, x, k]
-                elif not first and valid[y - sy, x - sx]:
-                    for k in range(3):
-                        dv[3 * ax + k] = Wd[y, x, k] - Wd[y - sy, x - sx, k]
-                else:
-                    okd = False
-            if not okd:
-                continue
-            nx = dv[1] * dv[5] - dv[2] * dv[4]
-            ny = dv[2] * dv[3] - dv[0] * dv[5]
-            nz = dv[0] * dv[4] - dv[1] * dv[3]
-            if nx * nx + ny * ny + nz * nz <= 0:
-                continue
-            nx, ny, nz = _norm3(nx, ny, nz)
-            if (eye[0] - Wd[y, x, 0]) * nx + (eye[1] - Wd[y, x, 1]) * ny + (eye[2] - Wd[y, x, 2]) * nz < 0:
-                nx, ny, nz = -nx, -ny, -nz
-            A[i, j, 0], A[i, j, 1], A[i, j, 2], A[i, j, 3] = nx, ny, nz, 1.0
+        _raw_normals_row(Wd, valid, eye, y0 + i, x0, i == 0, i == h - 1, w, A[i])
     B = np.zeros((h, w, 4))
     for i in prange(h):   # horizontal pass, replicate border
         for j in range(w):
@@ -174,14 +176,47 @@ def normals_box(Wd, valid, eye, y0, y1, x0, x1, kern, out):
                     B[i, j, c] += kern[t] * A[i, jj, c]
     for i in prange(h):   # vertical pass, normalise by the weight, then to unit length
         for j in range(w):
-            s = np.zeros(4)
+            s0 = s1 = s2 = s3 = 0.0
             for t in range(len(kern)):
                 ii = min(max(i + t - r, 0), h - 1)
-                for c in range(4):
-                    s[c] += kern[t] * B[ii, j, c]
-            m = max(s[3], 1e-8)
-            nx, ny, nz = _norm3(s[0] / m, s[1] / m, s[2] / m)
+                s0 += kern[t] * B[ii, j, 0]
+                s1 += kern[t] * B[ii, j, 1]
+                s2 += kern[t] * B[ii, j, 2]
+                s3 += kern[t] * B[ii, j, 3]
+            m = max(s3, 1e-8)
+            nx, ny, nz = _norm3(s0 / m, s1 / m, s2 / m)
             out[y0 + i, x0 + j, 0], out[y0 + i, x0 + j, 1], out[y0 + i, x0 + j, 2] = nx, ny, nz
+
+
+@njit(cache=True)
+def _raw_normals_row(Wd, valid, eye, y, x0, first_row, last_row, w, A):
+    """Unblurred normals of crop row y (normals_box) into A (w, 4): n, 1 where defined."""
+    for j in range(w):
+        x = x0 + j
+        if not valid[y, x]:
+            continue
+        # W(l + (0, 1)) - W(l): one row down (backward difference at the crop's last row or
+        # where the lower neighbour is invalid)
+        if not last_row and valid[y + 1, x]:
+            a0, a1, a2 = Wd[y + 1, x, 0] - Wd[y, x, 0], Wd[y + 1, x, 1] - Wd[y, x, 1], Wd[y + 1, x, 2] - Wd[y, x, 2]
+        elif not first_row and valid[y - 1, x]:
+            a0, a1, a2 = Wd[y, x, 0] - Wd[y - 1, x, 0], Wd[y, x, 1] - Wd[y - 1, x, 1], Wd[y, x, 2] - Wd[y - 1, x, 2]
+        else:
+            continue
+        # W(l + (1, 0)) - W(l): one column right
+        if j < w - 1 and valid[y, x + 1]:
+            b0, b1, b2 = Wd[y, x + 1, 0] - Wd[y, x, 0], Wd[y, x + 1, 1] - Wd[y, x, 1], Wd[y, x + 1, 2] - Wd[y, x, 2]
+        elif j > 0 and valid[y, x - 1]:
+            b0, b1, b2 = Wd[y, x, 0] - Wd[y, x - 1, 0], Wd[y, x, 1] - Wd[y, x - 1, 1], Wd[y, x, 2] - Wd[y, x - 1, 2]
+        else:
+            continue
+        nx, ny, nz = float(a1 * b2 - a2 * b1), float(a2 * b0 - a0 * b2), float(a0 * b1 - a1 * b0)
+        if nx * nx + ny * ny + nz * nz <= 0:
+            continue
+        nx, ny, nz = _norm3(nx, ny, nz)
+        if (eye[0] - Wd[y, x, 0]) * nx + (eye[1] - Wd[y, x, 1]) * ny + (eye[2] - Wd[y, x, 2]) * nz < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        A[j, 0], A[j, 1], A[j, 2], A[j, 3] = nx, ny, nz, 1.0
 
 
 @njit(cache=True, parallel=True)
@@ -254,10 +289,11 @@ def quad_ok(valid, key, rel_tol, label, dirs, div_tol):
 def project_splat(pos, valid, P, Wn, Hn):
     """Forward flow l_new = project(M_new, W_d) (uv (P, 2)) and point splatting with depth test
     (diffuse.splat_keys): per new pixel the smallest key z_q * P + old index (10 um depth
-    quantum), BIG where nothing landed. Serial (a scatter-min)."""
+    quantum), BIG where nothing landed, and that old index (int32, -1). Serial (a scatter-min)."""
     n_old = pos.shape[0]
     uv = np.empty((n_old, 2), np.float32)
     keys = np.full(Wn * Hn, BIG, np.int64)
+    idx = np.full(Wn * Hn, -1, np.int32)
     q = np.float32(1e5)
     for i in range(n_old):
         X0, X1, X2 = pos[i, 0], pos[i, 1], pos[i, 2]
@@ -277,26 +313,31 @@ def project_splat(pos, valid, P, Wn, Hn):
         t = int(ty) * Wn + int(tx)
         if key < keys[t]:
             keys[t] = key
-    return uv, keys
+            idx[t] = i
+    return uv, keys, idx
 
 
 @njit(cache=True, parallel=True)
-def closest_3x3(keys, Wn, Hn):
-    """§3.4: each pixel takes the flow of the pixel closest to the camera in its 3x3 neighbourhood."""
-    r = np.empty(Wn * Hn, np.int64)
+def closest_3x3(keys, idx, Wn, Hn):
+    """§3.4: each pixel takes the flow of the pixel closest to the camera (smallest key) in its
+    3x3 neighbourhood; returns that old index (int32, -1 where none)."""
+    rk = np.empty(Wn * Hn, np.int64)
+    ri = np.empty(Wn * Hn, np.int32)
     for y in prange(Hn):
         for x in range(Wn):
-            m = BIG
+            m, mi = BIG, -1
             for xx in range(max(x - 1, 0), min(x + 2, Wn)):
-                m = min(m, keys[y * Wn + xx])
-            r[y * Wn + x] = m
-    out = np.empty(Wn * Hn, np.int64)
+                if keys[y * Wn + xx] < m:
+                    m, mi = keys[y * Wn + xx], idx[y * Wn + xx]
+            rk[y * Wn + x], ri[y * Wn + x] = m, mi
+    out = np.empty(Wn * Hn, np.int32)
     for y in prange(Hn):
         for x in range(Wn):
-            m = BIG
+            m, mi = BIG, -1
             for yy in range(max(y - 1, 0), min(y + 2, Hn)):
-                m = min(m, r[yy * Wn + x])
-            out[y * Wn + x] = m
+                if rk[yy * Wn + x] < m:
+                    m, mi = rk[yy * Wn + x], ri[yy * Wn + x]
+            out[y * Wn + x] = mi
     return out
 
 
@@ -306,43 +347,49 @@ def fixed_point(uv, direct, filled, qok, valid, extra, W, H, Wn, Hn, eps, fallba
     candidate, then (fallback) the directly splatted one: x1 = x0 + (l_new - uv(x0)); converged
     when the bilinear re-projection uv(x1) (nearest valid tap where the quad is not smooth, then
     2 eps) lies within eps of l_new. Converged pixels get src = x1, ok, the nearest tap, and the
-    (P, C) `extra` image read at x1 into out[:, c0:c0 + C] (bilinear / nearest, ops.Sampler)."""
-    N, n_old = Wn * Hn, W * H
+    (P, C) `extra` image read at x1 into out[:, c0:c0 + C] (bilinear / nearest, ops.Sampler).
+    direct / filled: per new pixel the splatted / 3x3-filled old pixel index (-1: none)."""
+    N = Wn * Hn
     src = np.zeros((N, 2), np.float32)
     ok = np.zeros(N, np.bool_)
-    near = np.full(N, -1, np.int64)
+    near = np.full(N, -1, np.int32)
+    for y in prange(Hn):
+        _fpi_row(y, uv, direct, filled, qok, valid, extra, W, H, Wn, eps, fallback, out, c0, src, ok, near)
+    return src, ok, near
+
+
+@njit(cache=True)
+def _fpi_row(y, uv, direct, filled, qok, valid, extra, W, H, Wn, eps, fallback, out, c0, src, ok, near):
+    """fixed_point for the new pixels of row y."""
     C = extra.shape[1]
     dx, dy = (1 if W > 1 else 0), (W if H > 1 else 0)
     eps2 = eps * eps
-    for y in prange(Hn):
-        for x in range(Wn):
-            j = y * Wn + x
-            for attempt in range(2 if fallback else 1):
-                key = filled[j] if attempt == 0 else direct[j]
-                if key == BIG:
-                    break
-                idx = key % n_old
-                sx = np.float32((idx % W) + (x - uv[idx, 0]))
-                sy = np.float32((idx // W) + (y - uv[idx, 1]))
-                i0, fx, fy, inside = _cell(sx, sy, W, H)
-                smooth = qok[i0] and inside
-                nr = _nearest(i0, fx, fy, smooth, inside, valid, dx, dy)
-                if nr < 0:
-                    continue
-                if smooth:
-                    vx, vy = _bilin(uv, 0, i0, fx, fy, dx, dy), _bilin(uv, 1, i0, fx, fy, dx, dy)
-                else:
-                    vx, vy = uv[nr, 0], uv[nr, 1]
-                res2 = (vx - x) ** 2 + (vy - y) ** 2
-                if res2 < (eps2 if smooth else 4 * eps2) and sx > -0.5 and sx < W - 0.5 \
-                        and sy > -0.5 and sy < H - 0.5:
-                    src[j, 0], src[j, 1] = sx, sy
-                    ok[j] = True
-                    near[j] = nr
-                    for c in range(C):
-                        out[j, c0 + c] = _bilin(extra, c, i0, fx, fy, dx, dy) if smooth else extra[nr, c]
-                    break
-    return src, ok, near
+    for x in range(Wn):
+        j = y * Wn + x
+        for attempt in range(2 if fallback else 1):
+            idx = filled[j] if attempt == 0 else direct[j]
+            if idx < 0:
+                break
+            sx = np.float32((idx % W) + (x - uv[idx, 0]))
+            sy = np.float32((idx // W) + (y - uv[idx, 1]))
+            i0, fx, fy, inside = _cell(float(sx), float(sy), W, H)
+            smooth = qok[i0] and inside
+            nr = _nearest(i0, fx, fy, smooth, inside, valid, dx, dy)
+            if nr < 0:
+                continue
+            if smooth:
+                vx, vy = _bilin(uv, 0, i0, fx, fy, dx, dy), _bilin(uv, 1, i0, fx, fy, dx, dy)
+            else:
+                vx, vy = uv[nr, 0], uv[nr, 1]
+            res2 = (vx - x) ** 2 + (vy - y) ** 2
+            if res2 < (eps2 if smooth else 4 * eps2) and sx > -0.5 and sx < W - 0.5 \
+                    and sy > -0.5 and sy < H - 0.5:
+                src[j, 0], src[j, 1] = sx, sy
+                ok[j] = True
+                near[j] = nr
+                for c in range(C):
+                    out[j, c0 + c] = _bilin(extra, c, i0, fx, fy, dx, dy) if smooth else extra[nr, c]
+                break
 
 
 @njit(cache=True)
@@ -375,13 +422,13 @@ def root_attrs(pix, src, qok, valid, pos, normal, ior, fres, bits, c_new, W, H):
     F = np.empty(M, np.float32)
     for m in prange(M):
         j = pix[m]
-        i0, fx, fy, inside = _cell(src[j, 0], src[j, 1], W, H)
+        i0, fx, fy, inside = _cell(float(src[j, 0]), float(src[j, 1]), W, H)
         smooth = qok[i0] and inside
         nr = max(_nearest(i0, fx, fy, smooth, inside, valid, dx, dy), 0)
         for c in range(3):
             wn[m, c] = _bilin(pos, c, i0, fx, fy, dx, dy) if smooth else pos[nr, c]
             wn[m, 3 + c] = _bilin(normal, c, i0, fx, fy, dx, dy) if smooth else normal[nr, c]
-        n0, n1, n2 = _norm3(wn[m, 3], wn[m, 4], wn[m, 5])
+        n0, n1, n2 = _norm3(float(wn[m, 3]), float(wn[m, 4]), float(wn[m, 5]))
         wn[m, 3], wn[m, 4], wn[m, 5] = n0, n1, n2
         v0, v1, v2 = _norm3(wn[m, 0] - c_new[0], wn[m, 1] - c_new[1], wn[m, 2] - c_new[2])
         ior_s[m], code_s[m], bits_s[m] = ior[nr], fres[nr], bits[nr]

@@ -50,16 +50,15 @@ def decode(tree: RayTree, opts, timings: dict | None = None):
     K = torch.as_tensor(tree.K, dtype=torch.float32)
     T = torch.as_tensor(tree.cam_from_world, dtype=torch.float32)
     center = -T[:3, :3].T @ T[:3, 3]
-    depth = np.stack([_f32(tree.depth[i]) for i in range(n)])
-    bits = np.asarray(tree.valid).astype(np.int32)
-    valid = ((bits[None] >> np.arange(n, dtype=np.int32)[:, None, None]) & 1) > 0
-    valid[0] &= depth[0] > 0
+    depth = _f32(tree.depth)                      # (n, H, W)
+    bits = np.asarray(tree.valid)
+    valid = nk.unpack_valid(bits, depth)
     H, W = depth[0].shape
     pos = np.zeros((n, H, W, 3), np.float32)
     nk.unproject(depth[0], K.numpy().astype(np.float64), T.numpy().astype(np.float64), pos[0])
     t1 = time.perf_counter()
     margin = opts.normal_ksize // 2 + 3
-    box = bbox(((bits >> 1) > 0) & valid[0], margin) if n > 1 else None
+    box = bbox(valid[1:].any(0) & valid[0], margin) if n > 1 else None
     box = box or (0, 0, 0, 0)
     y0, y1, x0, x1 = box
     nd = np.zeros((H, W, 3), np.float32)
@@ -71,7 +70,7 @@ def decode(tree: RayTree, opts, timings: dict | None = None):
         nk.normals_box(pos[0], valid[0], c64, y0, y1, x0, x1, kern, nd)
     t2 = time.perf_counter()
     ior = _f32(tree.ior)
-    fres = np.asarray(tree.fresnel).astype(np.int64)
+    fres = np.asarray(tree.fresnel).astype(np.int32)
     dirs = np.zeros((n, H, W, 3), np.float32)
     valid[1:, :y0] = False
     valid[1:, y1:] = False
@@ -80,11 +79,11 @@ def decode(tree: RayTree, opts, timings: dict | None = None):
     if y1 > y0 and x1 > x0:
         nk.decode_box(pos[0], nd, c64, depth, valid, np.asarray(tree.kind, np.int64), ior, fres,
                       y0, y1, x0, x1, dirs, pos)
-    rgb = [_t(_f32(tree.rgb[0]))]
+    rgb = [torch.from_numpy(np.asarray(tree.rgb[0])).float()]   # float16 -> 32: torch is 3x faster
     for i in range(1, n):
-        r = np.zeros((H, W, 3), np.float32)
-        r[y0:y1, x0:x1] = tree.rgb[i][y0:y1, x0:x1]
-        rgb.append(_t(r))
+        r = torch.zeros(H, W, 3)
+        r[y0:y1, x0:x1] = torch.from_numpy(np.asarray(tree.rgb[i][y0:y1, x0:x1]))
+        rgb.append(r)
     t3 = time.perf_counter()
     if timings is not None:
         timings["decode_diffuse"] = t1 - tic
@@ -104,17 +103,14 @@ def root_tables(dec, rel_tol: float) -> dict:
     quad smoothness with the node-set / Fresnel label (as warp._root_tables)."""
     key = ("nb_root", rel_tol)
     if key not in dec.cache:
-        n = dec.tree.n_nodes
         H, W = dec.valid[0].shape
-        bits = np.zeros((H, W), np.int32)
-        for i in range(n):
-            bits |= _np(dec.valid[i]).astype(np.int32) << i
-        fres = _np(dec.fresnel).astype(np.int64)
-        label = bits * 4 + fres.astype(np.int32)
-        v0, d0 = _np(dec.valid[0]), _np(dec.depth[0]).astype(np.float32)
+        fres = _np(dec.fresnel).astype(np.int32)
+        vs = np.stack([_np(v) for v in dec.valid])
+        bits, label = nk.root_labels(vs, fres)
+        v0, d0 = vs[0], _np(dec.depth[0]).astype(np.float32)
         qok = nk.quad_ok(v0, d0, rel_tol, label, np.zeros((0, 0, 3), np.float32), 0.0)
         dec.cache[key] = dict(
-            W=W, H=H, qok=qok, valid=v0.reshape(-1), bits=bits.reshape(-1).astype(np.int64),
+            W=W, H=H, qok=qok, valid=v0.reshape(-1), bits=bits,
             pos=_np(dec.pos[0]).reshape(-1, 3), normal=_np(dec.normal[0]).reshape(-1, 3),
             rgb=_np(dec.rgb[0]).reshape(-1, 3), ior=_np(dec.ior).reshape(-1),
             fres=fres.reshape(-1))
@@ -141,15 +137,17 @@ def node_tables(dec, i: int, rel_tol: float, div_tol: float) -> dict:
     return dec.cache[key]
 
 
-def push_pull(img: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """fill.push_pull with the numba kernels (§3.5): (H, W, C) float32, valid (H, W) bool."""
+def push_pull(img: np.ndarray, valid: np.ndarray, inplace: bool = False) -> np.ndarray:
+    """fill.push_pull with the numba kernels (§3.5): (H, W, C) float32, valid (H, W) bool;
+    inplace: fill the holes of `img` itself (a C-contiguous float32 array)."""
     if valid.all():
         return img
     if not valid.any():
         return np.zeros_like(img)
     img = _f32(img)
     levels = []
-    c, w = img, valid.astype(np.float32)
+    w0 = valid.astype(np.float32)
+    c, w = img, w0
     while min(c.shape[:2]) > 1:
         c, w = ns.pull(c, w)
         levels.append((c, w))
@@ -158,15 +156,15 @@ def push_pull(img: np.ndarray, valid: np.ndarray) -> np.ndarray:
     filled = levels[-1][0]
     for c, w in reversed(levels[:-1]):
         filled = ns.push(filled, c, w, False, valid)
-    return ns.push(filled, img.copy(), valid.astype(np.float32), True, valid)
+    return ns.push(filled, img if inplace else img.copy(), w0, True, valid)
 
 
 def _flow(dec, R, camera, o, extra, out, c0):
     from .diffuse import projection_matrix
     Wn, Hn = camera.width, camera.height
     P_new = projection_matrix(camera.K, camera.cam_from_world, "cpu").numpy().astype(np.float64)
-    uv, direct = nk.project_splat(R["pos"], R["valid"], P_new, Wn, Hn)
-    filled = nk.closest_3x3(direct, Wn, Hn)
+    uv, keys, direct = nk.project_splat(R["pos"], R["valid"], P_new, Wn, Hn)
+    filled = nk.closest_3x3(keys, direct, Wn, Hn)
     return nk.fixed_point(uv, direct, filled, R["qok"], R["valid"], extra, R["W"], R["H"], Wn, Hn,
                           float(o.fpi_eps), True, out, c0)
 
@@ -246,28 +244,32 @@ def warp_decoded(dec, camera, o, record_history: bool = False):
     t1 = time.perf_counter()
     okv = ok.reshape(Hn, Wn)
     if o.fill:
-        root = push_pull(root.reshape(Hn, Wn, -1), okv).reshape(N, -1)
+        root = push_pull(root.reshape(Hn, Wn, -1), okv, inplace=True).reshape(N, -1)
     tm["fill_diffuse"] = time.perf_counter() - t1
-    img = np.ascontiguousarray(root[:, :3])
+    img = root[:, :3].copy()
     F_full = np.ones(N, np.float32)
     F_full[pix_s] = F_s
-    nodes_np, region_np, defined_np = [img.reshape(Hn, Wn, 3).copy()], [okv], [okv]
+    nodes_np, region_np, defined_np = [root[:, :3].reshape(Hn, Wn, 3)], [okv], [okv]
     for i in range(1, n_nodes):
         t1 = time.perf_counter()
-        wi = np.ascontiguousarray(root[:, 2 + i])
+        use, ubox = ns.positive(root, 2 + i, Wn)   # the node contributes (incl. filled holes)
         d_full = np.zeros(N, bool)
         d_full[pix_s] = def_node[i]
         node = np.zeros((N, 3), np.float32)
         node[pix_s] = val_node[i]
         nv, dv = node.reshape(Hn, Wn, 3), d_full.reshape(Hn, Wn)
-        box = bbox(((wi > 0) | d_full).reshape(Hn, Wn))
-        if box is not None and o.fill:
-            by0, by1, bx0, bx1 = box
+        ps = pix_s[def_node[i]]
+        if len(ps):   # bounding box of use | defined
+            ys, xs = ps // Wn, ps % Wn
+            ubox = (min(ubox[0], ys.min()), max(ubox[1], ys.max() + 1),
+                    min(ubox[2], xs.min()), max(ubox[3], xs.max() + 1))
+        if ubox[1] > ubox[0] and o.fill:
+            by0, by1, bx0, bx1 = (int(b) for b in ubox)
             nv[by0:by1, bx0:bx1] = push_pull(nv[by0:by1, bx0:bx1], np.ascontiguousarray(dv[by0:by1, bx0:bx1]))
         name = "fill_reflection" if kinds[i] == REFLECTIVE else "fill_refraction"
         tm[name] = tm.get(name, 0.0) + time.perf_counter() - t1
         t1 = time.perf_counter()   # 4. compositing (§3.5): nodes added with their Fresnel weights
-        use = ns.add_weighted(img, wi, node)
+        ns.add_weighted(img, root, 2 + i, node, use)
         nodes_np.append(nv)
         region_np.append(use.reshape(Hn, Wn))
         defined_np.append(dv)
