@@ -55,7 +55,10 @@ def closest_3x3(keys: torch.Tensor, new_size: tuple[int, int]) -> torch.Tensor:
     """§3.4: "the flow at each pixel is replaced by the flow of the pixel that is closest to the
     camera in a 3x3 neighborhood" (min key over the 9 neighbours, as two separable 3-tap mins)."""
     Wn, Hn = new_size
-    k = torch.nn.functional.pad(keys.view(1, Hn, Wn), (1, 1, 1, 1), value=_BIG)[0]
+    # padded with _BIG by hand: F.pad's float `value` turns int64 max into int64 min, which made
+    # every border pixel "closest" to a garbage key (found by the numba backend's tests)
+    k = torch.full((Hn + 2, Wn + 2), _BIG, dtype=torch.int64, device=keys.device)
+    k[1:-1, 1:-1] = keys.view(Hn, Wn)
     r = torch.minimum(torch.minimum(k[:, :-2], k[:, 1:-1]), k[:, 2:])      # (Hn + 2, Wn)
     return torch.minimum(torch.minimum(r[:-2], r[1:-1]), r[2:]).reshape(-1)
 
