@@ -28,9 +28,10 @@ def build_scene(vertices: np.ndarray, triangles: np.ndarray):
 def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """World-space ray origins (H*W, 3) and unit directions (H*W, 3) through pixel centres."""
     uv = camera.pixel_grid().reshape(-1, 2)
-    d_cam = np.linalg.solve(camera.K, np.c_[uv, np.ones(len(uv))].T).T
-    d_world = d_cam @ camera.R  # R^T d for each row
-    d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)
+    # R^T K^-1 [u, v, 1] for each row, as one (3, 3) map applied to u, v plus a constant
+    M = camera.R.T @ np.linalg.inv(camera.K)
+    d_world = uv @ M[:, :2].T + M[:, 2]
+    d_world /= np.sqrt(np.einsum("ij,ij->i", d_world, d_world))[:, None]
     origins = np.broadcast_to(camera.center, d_world.shape).copy()
     return origins, d_world
 

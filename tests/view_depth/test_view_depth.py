@@ -142,6 +142,34 @@ def test_grid_mesh_cut_and_simplified():
     assert np.all(np.ptp(z, axis=1) < 0.05)  # still never stretched across the edge
 
 
+def test_grid_mesh_depth_equals_its_ray_cast():
+    """view_mesh's base score uses the grid mesh's own depth without ray casting it
+    (grid_mesh_depth); an independent ray cast (open3d) must give the same image."""
+    cam = _cam()
+    d = _step_scene(40)
+    d[10:14, 5:9] = 0.0  # a hole with an isolated pixel in it: a valid vertex no face uses
+    d[11, 6] = 1.0
+    d[:, 30:] *= 1.0 + 0.01 * np.arange(d.shape[1] - 30)  # a slanted part
+    P, N = points_from_depth(d, cam.K), normals_from_depth(d, cam.K)
+    v, f, gd = grid_mesh(d, cam, de.depth_edges(P, N, d), return_depth=True)
+    rc = render_depth(v, f, cam)
+    used = gd > 0
+    assert used.sum() > 0.8 * d.size and (~used & (d > 0)).any()  # some valid pixels are unused
+    hit = rc > 0
+    # the ray of a used vertex's pixel meets the mesh at that vertex (rays that slip through
+    # exactly at a vertex are re-cast 0.01 px off it, hence the tolerance); an unused pixel's
+    # ray meets nothing
+    assert (hit & used).sum() >= 0.999 * used.sum()
+    assert np.allclose(rc[hit & used], gd[hit & used], rtol=1e-4)
+    assert not (hit & ~used).any()
+    # and the adaptive simplification gives the same result from either base depth
+    a = simplify_adaptive(v, f, cam, d, max_vertices=2000, min_vertices=8)
+    b = simplify_adaptive(v, f, cam, d, max_vertices=2000, min_vertices=8, mesh_depth=gd)
+    assert len(a.faces) == len(b.faces)
+    with pytest.raises(ValueError):
+        simplify_adaptive(v, f, cam, d, 2000, mesh_depth=gd[:-1])
+
+
 def test_shape_checks():
     with pytest.raises(ValueError):
         de.planar_distance(np.zeros((3, 3)), np.zeros((2, 3)), np.zeros((3, 3)), np.zeros((3, 3)))
