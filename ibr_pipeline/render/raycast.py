@@ -30,7 +30,8 @@ def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     uv = camera.pixel_grid().reshape(-1, 2)
     # R^T K^-1 [u, v, 1] for each row, as one (3, 3) map applied to u, v plus a constant
     M = camera.R.T @ np.linalg.inv(camera.K)
-    d_world = uv @ M[:, :2].T + M[:, 2]
+    # elementwise, not a (N, 2) @ (2, 3) product: BLAS was slow on it under load
+    d_world = uv[:, :1] * M[:, 0] + uv[:, 1:] * M[:, 1] + M[:, 2]
     d_world /= np.sqrt(np.einsum("ij,ij->i", d_world, d_world))[:, None]
     origins = np.broadcast_to(camera.center, d_world.shape).copy()
     return origins, d_world
