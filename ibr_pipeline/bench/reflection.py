@@ -269,6 +269,29 @@ def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
     return tg.image[sel][ok], lay, sample_bilinear(kg.image, a), extra, float(ok.mean())
 
 
+def rerender_own_m1(tg, kg, R_k, m1_offset, tol: float = 0.05):
+    """As `rerender`'s layered prediction, but the reflection layer is sampled where k's OWN M1
+    (optionally with its optimised relative depth offsets, m1_vertices.py) is seen through t's
+    pixels: b = project_k(X1_t) + J (eps + delta_k(b)), the first-order intersection of t's ray
+    with k's M1 (what rendering M1.ply of k at t gives). Returns (target, layered) or None."""
+    from ..geometry.decompose import sample_bilinear, _nearest, depth_consistent, project
+    from ..geometry.m1_vertices import shift_jacobian
+    sel = tg.mask & (tg.D1 > 0)
+    a, za = project(kg.camera, tg.X0[sel])
+    b, zb = project(kg.camera, tg.X1[sel])
+    ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
+    ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
+    if ok.sum() < 50:
+        return None
+    X = tg.X1[sel][ok]
+    J, eps = shift_jacobian(kg.camera, X, X - tg.camera.center, np.where(kg.mask, kg.D1, 0.0))
+    b = b[ok]
+    dlt = 0.0 if m1_offset is None else sample_bilinear(np.asarray(m1_offset)[..., None], b)[:, 0]
+    b = b + J * (eps + dlt)[:, None]
+    lay = sample_bilinear(kg.image - R_k, a[ok]) + sample_bilinear(R_k, b)
+    return tg.image[sel][ok], lay
+
+
 def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 0.0) -> dict:
     """Leave-one-out re-rendering: every capture view t that sees a reflector is held out (the
     decompositions of its nearest views k are recomputed without t: t is neither a neighbour nor
@@ -310,6 +333,12 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                 d["pairs"].append({"heldout": t, "from": k, "pixels": len(tgt), "coverage": cover,
                                    "layers": _psnr(lay, tgt), "unsplit": _psnr(uns, tgt),
                                    "gt_layers": _psnr(gtl, tgt)})
+                if info.get("m1_offset") is not None:  # k's own M1, before / after its offsets
+                    for key, off in (("layers_own_m1", None), ("layers_own_m1_opt",
+                                                               info["m1_offset"])):
+                        own = rerender_own_m1(tg, kg, info["R"], off, opts.visibility_tol)
+                        if own is not None:
+                            d["pairs"][-1][key] = _psnr(own[1], own[0])
                 d["se"] += [((x - tgt) ** 2).mean(1).sum() for x in (lay, uns, gtl)]
                 d["n"] += len(tgt)
     loader.names = names
@@ -324,6 +353,10 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                      "median_gt_layers_psnr": float(np.median([p["gt_layers"] for p in ps])),
                      "pooled_layers_psnr": pooled[0], "pooled_unsplit_psnr": pooled[1],
                      "pooled_gt_layers_psnr": pooled[2], "per_pair": ps}
+        for key in ("layers_own_m1", "layers_own_m1_opt"):
+            v = [p[key] for p in ps if key in p]
+            if v:
+                out[name]["median_" + key + "_psnr"] = float(np.median(v))
     return out
 
 
