@@ -2,7 +2,8 @@
 
   python -m ibr_pipeline.bench.raytree [--cases mirror,chrome,crystal,pane] [--size 320x240]
          [--supersample 3] [--move 5 --yaw 3] [--speed-size 1280x720] [--repeats 5]
-         [--device cpu|cuda] [--threads 2] [--out out/bench_raytree] [--skip-speed]
+         [--device cpu|cuda] [--threads 2] [--backend auto|torch|numba] [--out out/bench_raytree]
+         [--skip-speed]
 
 Accuracy: for every case (raytree.scenarios.CASES) a ray tree is traced at an old camera and the
 exact render at the new camera (moved `--move` cm right and yawed `--yaw` deg); PSNR of our warp
@@ -38,7 +39,7 @@ def _size(s: str) -> tuple[int, int]:
 
 
 def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=True,
-             figures: Path | None = None) -> list[dict]:
+             figures: Path | None = None, backend: str = "auto") -> list[dict]:
     from ..io.images import write_image
     from ..metrics import psnr
     from ..raytree.decode import DecodeOptions, decode
@@ -56,8 +57,8 @@ def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=Tr
                "yaw_deg": yaw, "pixels": int(keep.size), "disoccluded": int(c.disoccluded.sum()),
                "specular_pixels": int(spec.sum()), "trace_s": round(t_trace, 2)}
         for normals in ("reconstruct", "exact"):
-            o = WarpOptions(decode=DecodeOptions(normals=normals))
-            dec = decode(c.tree, device, o.decode)
+            o = WarpOptions(decode=DecodeOptions(normals=normals), backend=backend)
+            dec = decode(c.tree, device, o.decode, backend=backend)
             r = warp_decoded(dec, c.new, o, record_history=(normals == "reconstruct"))
             img = np.clip(r.image, 0, 1)
             tag = "" if normals == "reconstruct" else "_exact_normals"
@@ -149,11 +150,15 @@ def speed_case(size, tree_file: Path | None = None):
     return c.tree, c.new
 
 
-def speed(size, repeats, device, tree_file: Path | None = None) -> dict:
+def speed(size, repeats, device, tree_file: Path | None = None, backend: str = "auto") -> dict:
     """Median per-frame time of decode + warp (ours) and, interleaved in the same run, of the
-    naive baseline (decode + first-hit-depth warp of the composited image + push-pull): their
-    ratio is comparable across runs on a loaded machine, the absolute times are not."""
+    naive baseline (decode + first-hit-depth warp of the composited image + push-pull, with the
+    same backend: on numba it shares the decode, diffuse-flow and push-pull kernels): their
+    ratio is comparable across runs on a loaded machine, the absolute times are not. One warm-up
+    frame of each first (numba compiles or loads its cached kernels there)."""
     import torch
+
+    from ..raytree.backend import numba_available, resolve
 
     from ..raytree.decode import decode
     from ..raytree.warp import WarpOptions, naive_warp, warp
@@ -161,13 +166,16 @@ def speed(size, repeats, device, tree_file: Path | None = None) -> dict:
     tree, new = speed_case(size, tree_file)
     size = tree.size
     runs, cpu, base_wall, base_cpu = [], [], [], []
-    o = WarpOptions()
+    o = WarpOptions(backend=backend)
+    used = resolve(backend, device)
 
     def baseline():
-        naive_warp(decode(tree, device, o.decode), new, o)
+        naive_warp(decode(tree, device, o.decode, backend=backend), new, o)
 
-    warp(tree, new, o, device=device)  # warm-up (allocations, CUDA context)
+    w0 = time.perf_counter()
+    warp(tree, new, o, device=device)  # warm-up (numba compile / cache load, allocations, CUDA)
     baseline()
+    warmup = time.perf_counter() - w0
     for _ in range(repeats):
         p0 = time.process_time()   # CPU time of this process (all its threads): less affected
         runs.append(warp(tree, new, o, device=device).timings)  # by other users' load
@@ -184,12 +192,16 @@ def speed(size, repeats, device, tree_file: Path | None = None) -> dict:
     except OSError:
         load = None
     ours_cpu, ours_wall = float(np.median(cpu)), float(np.median([r["total"] for r in runs]))
-    return {"size": list(size), "nodes": tree.n_nodes, "device": str(device),
-            "threads": torch.get_num_threads(), "repeats": repeats,
+    threads = torch.get_num_threads()
+    if used == "numba" and numba_available():
+        import numba
+        threads = numba.get_num_threads()
+    return {"size": list(size), "nodes": tree.n_nodes, "device": str(device), "backend": used,
+            "threads": threads, "repeats": repeats, "warmup_s": round(warmup, 2),
             "median_ms": med, "total_runs_ms": [round(r["total"] * 1e3, 1) for r in runs],
             "cpu_ms_per_frame_median": round(1e3 * ours_cpu, 1),
             "cpu_runs_ms": [round(x * 1e3, 1) for x in cpu],
-            "baseline": "naive warp (decode + first-hit-depth warp + push-pull), interleaved",
+            "baseline": f"naive warp (decode + first-hit-depth warp + push-pull), interleaved, {used} backend",
             "baseline_wall_ms_median": round(1e3 * float(np.median(base_wall)), 1),
             "baseline_cpu_ms_median": round(1e3 * float(np.median(base_cpu)), 1),
             "ratio_wall_vs_baseline": round(ours_wall / max(float(np.median(base_wall)), 1e-9), 3),
@@ -216,7 +228,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speed-size", type=_size, default=(1280, 720))
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (2; 0: torch default)")
+    ap.add_argument("--threads", type=int, default=2, help="CPU threads of torch and numba (2; 0: default)")
+    ap.add_argument("--backend", choices=("auto", "torch", "numba"), default="auto",
+                    help="raytree backend (auto: numba on the CPU when installed, else torch)")
     ap.add_argument("--out", type=Path, default=Path("out/bench_raytree"))
     ap.add_argument("--skip-speed", action="store_true")
     ap.add_argument("--figures", type=Path, help="also write commit-sized raytree_fig7.png / "
@@ -226,9 +240,12 @@ def main(argv: list[str] | None = None) -> int:
                     "chrome case (for machines without open3d)")
     ap.add_argument("--save-speed-tree", type=Path, help="write the traced speed case's tree here")
     args = ap.parse_args(argv)
+    from ..raytree.backend import passive_omp_wait
+    passive_omp_wait()   # before torch loads libgomp (see backend.passive_omp_wait)
     import torch
     if args.threads > 0:
-        torch.set_num_threads(args.threads)
+        from ..raytree.backend import set_threads
+        set_threads(args.threads)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         print("error: --device cuda but CUDA is not available", file=sys.stderr)
         return 2
@@ -243,13 +260,13 @@ def main(argv: list[str] | None = None) -> int:
     result = {"command": "python -m ibr_pipeline.bench.raytree " + " ".join(argv or sys.argv[1:])}
     if not args.skip_accuracy:
         result["accuracy"] = accuracy(cases, args.size, args.supersample, args.move, args.yaw,
-                                      args.device, args.out, figures=args.figures)
+                                      args.device, args.out, figures=args.figures, backend=args.backend)
     if args.save_speed_tree is not None:
         from ..raytree.encoding import write_tree
         write_tree(args.save_speed_tree, speed_case(args.speed_size)[0])
         print(f"wrote {args.save_speed_tree}")
     if not args.skip_speed:
-        result["speed"] = speed(args.speed_size, args.repeats, args.device, args.speed_tree)
+        result["speed"] = speed(args.speed_size, args.repeats, args.device, args.speed_tree, args.backend)
         print(json.dumps(result["speed"], indent=1))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_raytree.json").write_text(json.dumps(result, indent=1))

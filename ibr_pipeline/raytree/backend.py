@@ -4,8 +4,8 @@ CUDA) or "numba" (fused compiled kernels, CPU only: nbkernels.py, nbsearch.py, w
 from __future__ import annotations
 
 import functools
-
-import torch
+import os
+import sys
 
 BACKENDS = ("auto", "torch", "numba")
 
@@ -21,6 +21,8 @@ def numba_available() -> bool:
 
 def resolve(backend: str, device) -> str:
     """"torch" or "numba" for `backend` on `device`; InputError for an impossible choice."""
+    import torch
+
     from ..errors import InputError
     if backend not in BACKENDS:
         raise InputError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -38,7 +40,20 @@ def resolve(backend: str, device) -> str:
 
 def set_threads(n: int) -> None:
     """CPU threads of both backends: torch's intra-op pool and numba's parallel kernels."""
+    import torch
     torch.set_num_threads(n)
     if numba_available():
         import numba
         numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+
+
+def passive_omp_wait() -> bool:
+    """Set OMP_WAIT_POLICY=PASSIVE unless the user set a policy, if no OpenMP runtime is loaded
+    yet (call before importing torch; True when set). torch and numba's "omp" layer share one
+    libgomp, which reads the policy once at load; its default spinning workers took the core
+    the other worker or the serial glue needed on this shared 2-core machine (bench.raytree,
+    2 threads, load ~3-4: 979 ms/frame wall spinning, 235 ms passive)."""
+    if "OMP_WAIT_POLICY" in os.environ or "torch" in sys.modules or "numba" in sys.modules:
+        return False
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    return True

@@ -44,7 +44,9 @@ def register(sub) -> None:
     alg.add_argument("--eps-deg", type=float, default=1.0, help="undefined above this Delta (1 deg)")
     alg.add_argument("--no-fill", action="store_true", help="no push-pull hole filling (§3.5)")
     alg.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda")
-    alg.add_argument("--threads", type=int, default=2, help="torch CPU threads (2: this 2-core machine)")
+    alg.add_argument("--threads", type=int, default=2, help="CPU threads, torch and numba (2: this 2-core machine)")
+    alg.add_argument("--backend", choices=("auto", "torch", "numba"), default="auto",
+                     help="auto: fused numba kernels on the CPU when installed, else torch (CUDA: torch)")
     p.add_argument("--save-tree", type=Path, help="also write the tree in our encoding (§3.2)")
     p.add_argument("--json", action="store_true", help="print the result summary as JSON")
     p.set_defaults(func=main)
@@ -93,15 +95,20 @@ def _check_args(args) -> None:
         raise InputError(f"--threads must be in [1, 256], got {args.threads}")
     import torch
     if args.device == "cpu":
-        torch.set_num_threads(args.threads)
+        from .backend import set_threads
+        set_threads(args.threads)
     if args.device.startswith("cuda"):
         if not torch.cuda.is_available():
             raise InputError(f"--device {args.device}: CUDA is not available")
     elif args.device != "cpu":
         raise InputError(f"--device must be cpu or cuda[:N], got {args.device}")
+    from .backend import resolve
+    resolve(args.backend, args.device)   # e.g. --backend numba --device cuda: one-line error
 
 
 def main(args) -> int:
+    from .backend import passive_omp_wait
+    passive_omp_wait()   # before torch loads libgomp (see backend.passive_omp_wait)
     import numpy as np
 
     from ..io.images import write_image
@@ -118,7 +125,7 @@ def main(args) -> int:
     cam = _pick_camera(args, tree, target)
     opts = WarpOptions(decode=DecodeOptions(normals=args.normals),
                        specular=SpecularOptions(steps=args.steps, eps_deg=args.eps_deg),
-                       fill=not args.no_fill)
+                       fill=not args.no_fill, backend=args.backend)
     opts.validate()
     if args.normals == "exact" and tree.normal is None:
         raise InputError(f"{args.tree}: --normals exact needs a tree with exact normals")
@@ -128,7 +135,7 @@ def main(args) -> int:
         write_tree(args.save_tree, tree)
         summary["saved_tree"] = str(args.save_tree)
     if args.out is not None:
-        dec = decode(tree, args.device, opts.decode)
+        dec = decode(tree, args.device, opts.decode, backend=args.backend)
         if args.app == "stereo":
             left, right = apps.stereo_pair(dec, cam, args.baseline, opts, args.naive)
             outs = {args.out.with_name(args.out.stem + "_left.png"): left,

@@ -23,6 +23,7 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
     # the installed TBB is too old for numba (it warns and falls back): try OpenMP first
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
+
 BIG = np.iinfo(np.int64).max          # empty splat slot (diffuse._BIG)
 F_NONE, F_DIELECTRIC, F_PANE = 0, 1, 2  # encoding.FRESNEL_*
 
