@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -86,7 +87,53 @@ def outputs(ctx: StageContext) -> list[str]:
     out += [f"eval/side_by_side/{i:04d}.png" for i in range(n)]
     if _set_cameras(ctx, "fly"):
         out.append("eval/fly.mp4")
+    if _energy_histories(ctx.ws):
+        out.append("eval/reflection_energy.png")
     return out
+
+
+def _energy_histories(ws) -> dict:
+    """{(view, reflector, pass): [energy per optimisation step]} from views/*/layers.json (the
+    reflection stage's record of Eq. 7 per step); views without a decomposition give none."""
+    out = {}
+    for p in sorted(ws.path("views").glob("*/layers.json")):
+        try:
+            layers = json.loads(p.read_text())
+        except (OSError, json.JSONDecodeError):
+            raise InputError(f"{p}: malformed JSON") from None
+        for r in layers.get("reflectors", []):
+            for h in r.get("history", []):
+                if "energy" in h and math.isfinite(h["energy"]):
+                    out.setdefault((p.parent.name, r.get("name", "?"), h.get("pass", 1)), []).append(h["energy"])
+    return {k: v for k, v in out.items() if len(v) > 1 and v[0] > 0}
+
+
+def _energy_chart(path: Path, histories: dict) -> None:
+    """The paper's Fig. 11: the decomposition energy per optimisation step (start, image and
+    geometry steps alternating, end), relative to its start, one line per view and reflector."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..workspace import atomic_path
+    names = sorted({k[1] for k in histories})
+    colours = {n: f"C{i % 10}" for i, n in enumerate(names)}
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for (view, name, pss), e in histories.items():
+        ax.plot(range(len(e)), [x / e[0] for x in e], color=colours[name], lw=0.8, alpha=0.6,
+                ls="-" if pss == 1 else "--")
+    for n in names:
+        ax.plot([], [], color=colours[n], label=n)
+    ax.plot([], [], color="k", ls="--", label="pass 2 (multi-view, Eqs. 11-13)")
+    ax.set_xlabel("optimisation step (start, image / geometry steps, end)")
+    ax.set_ylabel("Eq. 7 energy / energy at start")
+    ax.set_title(f"reflection decomposition convergence ({len(histories)} runs)", fontsize=9)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
 
 
 def _reflector_mask(ctx: StageContext, name: str, source: str, shape):
@@ -225,6 +272,8 @@ def run(ctx: StageContext) -> None:
             summary[f"fly_{k}"] = v
         write_mp4(ws.path("eval/fly.mp4"), frames, fps=cfg.fps)
     _chart(ws.path("eval/metrics.png"), methods)
+    if hist := _energy_histories(ws):
+        _energy_chart(ws.path("eval/reflection_energy.png"), hist)
     ws.write_json("eval/metrics.json", result)
     log.info("evaluate: PSNR ours %.2f dB (reflectors %s), single-layer %s, oracle %s, naive "
              "warp %s", summary["psnr"], _fmt(summary.get("psnr_mask")),

@@ -112,3 +112,28 @@ def test_leave_one_out_when_input_has_no_test_cameras(tiny_scene, tmp_path):
     m = json.loads((ws / "eval" / "metrics.json").read_text())
     assert m["source"] == "leave_one_out" and m["summary"]["psnr"] > 8.0
     assert "flip" not in m["summary"] and "gt_frame_change" not in m["temporal"]["ours"]
+
+
+def test_reflection_energy_chart(tmp_path):
+    """evaluate's convergence chart (Xu Fig. 11) reads the Eq. 7 energies that the reflection
+    stage records per step; views without a decomposition add no line; bad JSON is one error."""
+    from ibr_pipeline.errors import InputError
+    from ibr_pipeline.stages import evaluate as ev
+    from ibr_pipeline.workspace import Workspace
+
+    hist = [{"step": "init", "warp_energy": {}}, {"step": "start", "energy": 2.0},
+            {"step": "image", "energy": 1.2}, {"step": "pose", "energy": 1.1},
+            {"step": "end", "energy": 1.1}]
+    for view, layers in (("a.png", {"reflectors": [{"name": "tv", "history": hist},
+                                                   {"name": "mirror", "history": []}]}),
+                         ("b.png", {"reflector": None})):
+        (tmp_path / "views" / view).mkdir(parents=True)
+        (tmp_path / "views" / view / "layers.json").write_text(json.dumps(layers))
+    ws = Workspace(tmp_path)
+    h = ev._energy_histories(ws)
+    assert h == {("a.png", "tv", 1): [2.0, 1.2, 1.1, 1.1]}
+    ev._energy_chart(tmp_path / "e.png", h)
+    assert read_image(tmp_path / "e.png").shape[2] == 3
+    (tmp_path / "views" / "b.png" / "layers.json").write_text("{")
+    with pytest.raises(InputError, match="b.png"):
+        ev._energy_histories(ws)
