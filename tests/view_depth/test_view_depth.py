@@ -170,6 +170,25 @@ def test_grid_mesh_depth_equals_its_ray_cast():
         simplify_adaptive(v, f, cam, d, 2000, mesh_depth=gd[:-1])
 
 
+def test_strokes_keep_eq2_on_its_side_of_an_edge():
+    """Eq. 2 across an occlusion edge with the same colour on both sides: without a stroke the
+    geodesically nearest seeds include the other surface; a stroke along the edge (user strokes,
+    or view_depth's `edge_barrier` = the depth's own Eq. 1 edges) keeps each side's depth."""
+    from ibr_pipeline.geometry import depth_refine as dr
+
+    cam = _cam()
+    d = _step_scene(40)
+    image = np.full((H, W, 3), 0.5)
+    region = np.zeros((H, W), bool)
+    region[:, 35:46] = True
+    P, N = points_from_depth(d, cam.K), normals_from_depth(d, cam.K)
+    stroke = de.depth_edges(P, N, d).pixels()
+    free, _, _ = dr.refine(d, cam, image, region, None, 0.05, 15.0)
+    kept, _, _ = dr.refine(d, cam, image, region, stroke, 0.05, 15.0)
+    assert np.abs(free - d)[region].max() > 0.2  # sides mixed near the edge
+    assert np.abs(kept - d)[region].max() < 1e-6
+
+
 def test_shape_checks():
     with pytest.raises(ValueError):
         de.planar_distance(np.zeros((3, 3)), np.zeros((2, 3)), np.zeros((3, 3)), np.zeros((3, 3)))
