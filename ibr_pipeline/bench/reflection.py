@@ -249,18 +249,26 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
     return out
 
 
+def _visible_in_k(tg, kg, tol: float):
+    """t's reflector pixels (sel) whose surface point (a) and mirror-world point (b) are both seen
+    by k, inside k's reflector mask, by the depth tests (ok)."""
+    from ..geometry.decompose import _nearest, depth_consistent, project
+    sel = tg.mask & (tg.D1 > 0)
+    a, za = project(kg.camera, tg.X0[sel])
+    b, zb = project(kg.camera, tg.X1[sel])
+    ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
+    ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
+    return sel, a, b, ok
+
+
 def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
     """Predict the held-out view t's reflector pixels from neighbour k. Layered: I0_k at
     a = w(u, M0) (surface points of t projected into k) + R_k = beta I1_k at b = w(u, M1)
     (t's mirror-world points projected into k), as in Eq. 8; unsplit: I_k(a). `layers` =
     (I0_k, R_k) of another source (GT). Returns (target, layered, unsplit, extra) on the pixels
     where both warps are valid, or None."""
-    from ..geometry.decompose import sample_bilinear, _nearest, depth_consistent, project
-    sel = tg.mask & (tg.D1 > 0)
-    a, za = project(kg.camera, tg.X0[sel])
-    b, zb = project(kg.camera, tg.X1[sel])
-    ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
-    ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
+    from ..geometry.decompose import sample_bilinear
+    sel, a, b, ok = _visible_in_k(tg, kg, tol)
     if ok.sum() < 50:
         return None
     a, b = a[ok], b[ok]
@@ -274,13 +282,9 @@ def rerender_own_m1(tg, kg, R_k, m1_offset, tol: float = 0.05):
     (optionally with its optimised relative depth offsets, m1_vertices.py) is seen through t's
     pixels: b = project_k(X1_t) + J (eps + delta_k(b)), the first-order intersection of t's ray
     with k's M1 (what rendering M1.ply of k at t gives). Returns (target, layered) or None."""
-    from ..geometry.decompose import sample_bilinear, _nearest, depth_consistent, project
+    from ..geometry.decompose import sample_bilinear
     from ..geometry.m1_vertices import shift_jacobian
-    sel = tg.mask & (tg.D1 > 0)
-    a, za = project(kg.camera, tg.X0[sel])
-    b, zb = project(kg.camera, tg.X1[sel])
-    ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
-    ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
+    sel, a, b, ok = _visible_in_k(tg, kg, tol)
     if ok.sum() < 50:
         return None
     X = tg.X1[sel][ok]

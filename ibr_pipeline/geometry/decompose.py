@@ -232,15 +232,20 @@ def bilinear_matrix(pos: np.ndarray, W: int, H: int):
     return sp.csr_matrix((vals, (rows, cols)), shape=(N, H * W))
 
 
-def sample_bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """(N, C) bilinear samples of an (H, W, C) image at (N, 2) positions (clamped)."""
-    H, W = img.shape[:2]
+def bilinear_cells(pos: np.ndarray, H: int, W: int):
+    """The cell of each (N, 2) position (clamped to the image): x0, y0, x1, y1 and the (N, 1)
+    fractions ax, ay — shared by the sampler and its exact gradient (m1_vertices.py)."""
     x = np.clip(pos[:, 0], 0, W - 1)
     y = np.clip(pos[:, 1], 0, H - 1)
     x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
     y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
     ax, ay = (x - x0)[:, None], (y - y0)[:, None]
-    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    return x0, y0, np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1), ax, ay
+
+
+def sample_bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """(N, C) bilinear samples of an (H, W, C) image at (N, 2) positions (clamped)."""
+    x0, y0, x1, y1, ax, ay = bilinear_cells(pos, *img.shape[:2])
     return ((1 - ay) * ((1 - ax) * img[y0, x0] + ax * img[y0, x1])
             + ay * ((1 - ax) * img[y1, x0] + ax * img[y1, x1]))
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .decompose import DataTerm, ViewGeom, bilinear_matrix, project, sample_bilinear
+from .decompose import DataTerm, ViewGeom, bilinear_cells, bilinear_matrix, project, sample_bilinear
 from .mesh_laplacian import ControlMesh, cotangent_laplacian, grid_control_mesh
 
 
@@ -160,13 +160,7 @@ def bilinear_gradient(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
     img = np.asarray(img, np.float64)
     if img.ndim != 3 or np.ndim(pos) != 2 or np.shape(pos)[1] != 2:
         raise ValueError(f"need (H, W, C) and (N, 2), got {img.shape}, {np.shape(pos)}")
-    H, W = img.shape[:2]
-    x = np.clip(pos[:, 0], 0, W - 1)
-    y = np.clip(pos[:, 1], 0, H - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
-    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
-    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    x0, y0, x1, y1, ax, ay = bilinear_cells(pos, *img.shape[:2])
     a, b, c, d = img[y0, x0], img[y0, x1], img[y1, x0], img[y1, x1]
     return np.stack([(1 - ay) * (b - a) + ay * (d - c), (1 - ax) * (c - a) + ax * (d - b)], -1)
 
