@@ -52,7 +52,8 @@ def passive_omp_wait() -> bool:
     yet (call before importing torch; True when set). torch and numba's "omp" layer share one
     libgomp, which reads the policy once at load; its default spinning workers took the core
     the other worker or the serial glue needed on this shared 2-core machine (bench.raytree,
-    2 threads, load ~3-4: 979 ms/frame wall spinning, 235 ms passive)."""
+    2 threads, load ~3-4: 979 ms/frame wall spinning, 235 ms passive). On a quiet machine spinning
+    is the faster one (docs/RAYTREE.md): set OMP_WAIT_POLICY=ACTIVE there."""
     if "OMP_WAIT_POLICY" in os.environ or "torch" in sys.modules or "numba" in sys.modules:
         return False
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"

@@ -31,17 +31,6 @@ def supported(tree: RayTree, opts) -> bool:
             and opts.normal_ksize > 1)
 
 
-def bbox(mask: np.ndarray, margin: int = 0):
-    """ops.bbox on a numpy (H, W) mask."""
-    rows = np.flatnonzero(mask.any(1))
-    if len(rows) == 0:
-        return None
-    cols = np.flatnonzero(mask.any(0))
-    H, W = mask.shape
-    return (max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, H),
-            max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, W))
-
-
 def decode(tree: RayTree, opts, timings: dict | None = None):
     """decode.decode on the CPU with the numba kernels (§3.3); returns decode.Decoded."""
     from .decode import Decoded
@@ -58,7 +47,7 @@ def decode(tree: RayTree, opts, timings: dict | None = None):
     nk.unproject(depth[0], K.numpy().astype(np.float64), T.numpy().astype(np.float64), pos[0])
     t1 = time.perf_counter()
     margin = opts.normal_ksize // 2 + 3
-    box = bbox(valid[1:].any(0) & valid[0], margin) if n > 1 else None
+    box = ops.bbox(torch.from_numpy(valid[1:].any(0) & valid[0]), margin) if n > 1 else None
     box = box or (0, 0, 0, 0)
     y0, y1, x0, x1 = box
     nd = np.zeros((H, W, 3), np.float32)

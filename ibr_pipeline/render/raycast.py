@@ -25,9 +25,10 @@ def build_scene(vertices: np.ndarray, triangles: np.ndarray):
     return scene
 
 
-def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """World-space ray origins (H*W, 3) and unit directions (H*W, 3) through pixel centres."""
-    uv = camera.pixel_grid().reshape(-1, 2)
+def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space ray origins (N, 3) and unit directions (N, 3) through the (N, 2) pixel
+    positions `uv` (default: every pixel centre, N = H*W, row-major)."""
+    uv = camera.pixel_grid().reshape(-1, 2) if uv is None else np.asarray(uv, np.float64)
     # R^T K^-1 [u, v, 1] for each row, as one (3, 3) map applied to u, v plus a constant
     M = camera.R.T @ np.linalg.inv(camera.K)
     # elementwise, not a (N, 2) @ (2, 3) product: BLAS was slow on it under load
