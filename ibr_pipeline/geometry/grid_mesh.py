@@ -82,8 +82,8 @@ class DepthRenderer:
     pixel centres (the rays are built once, for the several meshes of simplify_adaptive).
 
     A ray through a pixel centre that is exactly a mesh vertex (every vertex of a pixel-grid
-    mesh; the border vertices that simplification preserves) slips between the triangles about
-    1 % of the time (measured on view_mesh's 640x480 grids); missed pixels are re-cast at tiny
+    mesh; the border vertices that simplification preserves) can slip between the triangles
+    (seen on view_mesh's 640x480 grids; tests/view_depth); missed pixels are re-cast at tiny
     sub-pixel offsets (SLIP_OFFSETS), so a pixel counts as covered when its centre lies on the
     closed mesh. Only misses next to a hit are re-cast (a slipped ray's neighbours are covered),
     so a mesh covering a small part of the view costs no more."""
