@@ -1,6 +1,7 @@
 """Stage `view_mesh` (Xu et al. §4.2.3), per view: the refined depth as a pixel-grid mesh (two
 triangles per pixel square, cut along Eq. 1 occlusion edges), quadric-simplified with
-fast-simplification (border preserved, so the cuts survive) to no more vertices than the view needs.
+fast-simplification (border preserved, so the cuts survive) to no more vertices than the view needs;
+version 3 first merges planar blocks of pixel squares (geometry/quadtree_mesh.py), ~5x less input.
 Mathematics: geometry/grid_mesh.py.
 """
 from __future__ import annotations
@@ -25,6 +26,10 @@ class ViewMeshConfig(StageConfig):
                              "depth error (misses count 5 per cent) grows by at most this", min=0.0, max=0.05)
     lambda_rel: float = param(0.01, "Eq. 1 threshold for the cuts (Xu §4.2.1: 0.01)", min=1e-4, max=0.5)
     agg: float = param(7.0, "fast-simplification aggressiveness", min=0.0, max=10.0)
+    premerge_tol: float = param(3e-4, "planar pre-merge before the simplification (ours, "
+                                "geometry/quadtree_mesh.py): blocks of pixel squares whose depth is "
+                                "planar within this relative deviation become a few triangles; 0 = "
+                                "the paper's full pixel grid", min=0.0, max=0.01)
 
 
 def run(ctx: StageContext, view: str) -> None:
@@ -56,7 +61,8 @@ def run(ctx: StageContext, view: str) -> None:
     pairs = de.depth_edges(P, N, depth, cfg.lambda_rel)  # cuts: Eq. 1 pairs of the refined depth
     # the grid mesh's own depth is known exactly (vertices at the pixel centres): no ray cast of
     # its ~600 k triangles at 640x480 for the base score (version 2: the stage's largest cost)
-    v, f, grid_depth = grid_mesh(depth, cam, pairs, return_depth=True)
+    v, f, grid_depth, premerge = grid_mesh(depth, cam, pairs, return_depth=True,
+                                           premerge_tol=cfg.premerge_tol)
     budget = max(cfg.min_vertices, int(round(cfg.max_vertices_640x480 * cam.width * cam.height / (640 * 480))))
     res = simplify_adaptive(v, f, cam, depth, budget, cfg.min_vertices, cfg.tol_score, cfg.agg,
                             mesh_depth=grid_depth)
@@ -65,12 +71,12 @@ def run(ctx: StageContext, view: str) -> None:
         "view": view, "edge_pixels": int((edges_png.mean(axis=2) > 0.5).sum()),
         "grid_vertices": res.grid_vertices, "grid_faces": res.grid_faces,
         "vertices": int(len(res.vertices)), "faces": int(len(res.faces)), "budget_vertices": budget,
-        "steps": res.steps, "ms": round(1000 * (time.perf_counter() - t0), 1),
+        "premerge": premerge, "steps": res.steps, "ms": round(1000 * (time.perf_counter() - t0), 1),
         "cpu_ms": round(1000 * (time.process_time() - c0), 1)})
 
 
 STAGE = Stage(name="view_mesh", help="quadric-simplified per-view meshes cut along occlusion edges",
-              config=ViewMeshConfig, version="2", run=run, per_view=True,
+              config=ViewMeshConfig, version="3", run=run, per_view=True,
               inputs=(REGISTERED_CAMERAS,),
               view_inputs=("{view_dir}/depth.npy", "{view_dir}/edges.png"),
               view_outputs=("{view_dir}/mesh.ply", "{view_dir}/mesh_report.json"),

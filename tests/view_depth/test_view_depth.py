@@ -151,7 +151,7 @@ def test_grid_mesh_depth_equals_its_ray_cast():
     d[11, 6] = 1.0
     d[:, 30:] *= 1.0 + 0.01 * np.arange(d.shape[1] - 30)  # a slanted part
     P, N = points_from_depth(d, cam.K), normals_from_depth(d, cam.K)
-    v, f, gd = grid_mesh(d, cam, de.depth_edges(P, N, d), return_depth=True)
+    v, f, gd, _ = grid_mesh(d, cam, de.depth_edges(P, N, d), return_depth=True)
     rc = render_depth(v, f, cam)
     used = gd > 0
     assert used.sum() > 0.8 * d.size and (~used & (d > 0)).any()  # some valid pixels are unused
