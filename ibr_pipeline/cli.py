@@ -93,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("workspace", type=Path, help="workspace folder")
         for name, typ, default, hlp in describe_fields(s.config):
             p.add_argument(f"--{name.replace('_', '-')}", dest=f"cfg__{name}", metavar=typ.upper(),
-                           help=f"{hlp} (default: {default})")
+                           help=f"{hlp} (default: {default})".replace("%", "%%"))  # argparse formats %
         _add_exec_args(p)
 
     from .synthetic import cli as synth_cli
