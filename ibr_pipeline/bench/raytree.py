@@ -23,6 +23,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -73,7 +74,19 @@ def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=Tr
                 dif = keep & ~c.specular   # first surface diffuse in the new view
                 row["psnr_diffuse_only"] = round(psnr(img, c.gt_image, dif), 3)
                 row["psnr_diffuse_only_naive"] = round(psnr(nv, c.gt_image, dif), 3)
+                # specular search: undefined pixels (Delta > eps, §3.4) per node, where they
+                # are, and how many the position-domain fill (our extension) leaves to push-pull
                 row["undefined_specular"] = [int((g & ~d).sum()) for g, d in zip(r.region[1:], r.defined[1:])]
+                row["undefined_split"] = [_undefined_split(g & ~d, c) for g, d in zip(r.region[1:], r.defined[1:])]
+                row["unfilled_after_position_fill"] = [int((g & ~d & ~f).sum()) for g, d, f in
+                                                       zip(r.region[1:], r.defined[1:], r.filled[1:])]
+                # the paper's hole filling alone (push-pull of colours, §3.5), same search
+                op = WarpOptions(decode=o.decode, backend=backend,
+                                 specular=replace(o.specular, fill_radius=0))
+                rp = np.clip(warp_decoded(dec, c.new, op).image, 0, 1)
+                row["psnr_specular_pushpull_only"] = round(psnr(rp, c.gt_image, spec), 3)
+                row["specular_gain_db_pushpull_only"] = round(row["psnr_specular_pushpull_only"]
+                                                              - row["psnr_specular_naive"], 3)
                 panels.append(np.concatenate([nv, c.gt_image, img], 1))
                 if name == "chrome" or (hist is None and r.history):
                     hist = (name, r.history)
@@ -91,6 +104,23 @@ def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=Tr
         if figures is not None:
             _plot_energy(hist, figures / "raytree_fig8.png", dpi=80)
     return rows
+
+
+def _undefined_split(und: np.ndarray, c) -> dict:
+    """Where the undefined pixels of a node are (new view, ground-truth masks of the case):
+    disoccluded (outside the PSNR masks), not specular in the ground truth (the old tree labels
+    the surface specular, the new view sees e.g. the mirror frame), on the specular region's
+    rim (within 2 px of its border: sphere silhouette, mirror border) or inside it."""
+    spec = c.specular
+    pad = np.pad(spec, 2, mode="edge")
+    H, W = spec.shape
+    inner = np.ones_like(spec)
+    for dy in range(5):
+        for dx in range(5):
+            inner &= pad[dy:dy + H, dx:dx + W]
+    kept = und & ~c.disoccluded
+    return {"disoccluded": int((und & c.disoccluded).sum()), "not_specular_gt": int((kept & ~spec).sum()),
+            "rim_2px": int((kept & spec & ~inner).sum()), "interior": int((kept & spec & inner).sum())}
 
 
 def _small_png(img: np.ndarray, path: Path, names: list[str]) -> None:

@@ -43,6 +43,9 @@ def register(sub) -> None:
     alg.add_argument("--steps", type=int, default=10, help="gradient-descent steps (10, §3.4)")
     alg.add_argument("--eps-deg", type=float, default=1.0, help="undefined above this Delta (1 deg)")
     alg.add_argument("--no-fill", action="store_true", help="no push-pull hole filling (§3.5)")
+    alg.add_argument("--fill-radius", type=int, default=3,
+                     help="our extension: undefined specular pixels take the flow of an affine fit of "
+                          "their defined neighbours within this radius (3); 0: the paper's push-pull only")
     alg.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda")
     alg.add_argument("--threads", type=int, default=2, help="CPU threads, torch and numba (2: this 2-core machine)")
     alg.add_argument("--backend", choices=("auto", "torch", "numba"), default="auto",
@@ -124,7 +127,8 @@ def main(args) -> int:
     target = read_pair_target(args.tree)
     cam = _pick_camera(args, tree, target)
     opts = WarpOptions(decode=DecodeOptions(normals=args.normals),
-                       specular=SpecularOptions(steps=args.steps, eps_deg=args.eps_deg),
+                       specular=SpecularOptions(steps=args.steps, eps_deg=args.eps_deg,
+                                                fill_radius=args.fill_radius),
                        fill=not args.no_fill, backend=args.backend)
     opts.validate()
     if args.normals == "exact" and tree.normal is None:

@@ -289,3 +289,75 @@ def add_weighted(img, buf, ch, node, use):
         if use[j]:
             for c in range(3):
                 img[j, c] += buf[j, ch] * node[j, c]
+
+
+# ------------------------------------- position-domain fill of undefined pixels (our extension)
+@njit(cache=True)
+def position_fill(q, known, pix, Wn, Hn, radius, rounds):
+    """Our extension after §3.4's search (replaces §3.5's colour push-pull for the pixels it can
+    reach; = specular.position_fill): each round, every not-yet-known pixel of the searched set
+    with >= 3 known pixels of the set in its (2 radius + 1)^2 new-image window gets q from the
+    least-squares affine fit q = c0 + c1 dx + c2 dy of those neighbours, evaluated at its own
+    position (c0; skipped this round where the offsets are collinear). Rounds are Jacobi (values found
+    in a round are used from the next one); stops early when a round fills nothing.
+    q (M, 2) float32, known (M,) bool, pix (M,) flat new-image indices. Returns (q, filled)."""
+    M = len(q)
+    qo = q.copy()
+    kn = known.copy()
+    filled = np.zeros(M, np.bool_)
+    grid = np.full(Wn * Hn, -1, np.int64)
+    for m in range(M):
+        grid[pix[m]] = m
+    new = np.zeros((M, 2), np.float64)
+    got = np.zeros(M, np.bool_)
+    for _ in range(rounds):
+        any_new = False
+        for m in range(M):
+            got[m] = False
+            if kn[m]:
+                continue
+            x0, y0 = pix[m] % Wn, pix[m] // Wn
+            n = sx = sy = sxx = sxy = syy = 0.0
+            s0 = s1 = sx0 = sx1 = sy0 = sy1 = 0.0
+            for dy in range(-radius, radius + 1):
+                y = y0 + dy
+                if y < 0 or y >= Hn:
+                    continue
+                for dx in range(-radius, radius + 1):
+                    x = x0 + dx
+                    if x < 0 or x >= Wn:
+                        continue
+                    j = grid[y * Wn + x]
+                    if j < 0 or not kn[j]:
+                        continue
+                    a, b = float(qo[j, 0]), float(qo[j, 1])
+                    n += 1.0
+                    sx += dx
+                    sy += dy
+                    sxx += dx * dx
+                    sxy += dx * dy
+                    syy += dy * dy
+                    s0 += a
+                    s1 += b
+                    sx0 += dx * a
+                    sx1 += dx * b
+                    sy0 += dy * a
+                    sy1 += dy * b
+            if n < 3:
+                continue
+            m11 = sxx * syy - sxy * sxy
+            det = n * m11 - sx * (sx * syy - sxy * sy) + sy * (sx * sxy - sxx * sy)
+            if det < 0.5:   # integer offsets: det is an integer, 0 when they are collinear
+                continue    # (no fit across the line; a later round may see more neighbours)
+            new[m, 0] = (s0 * m11 - sx * (sx0 * syy - sxy * sy0) + sy * (sx0 * sxy - sxx * sy0)) / det
+            new[m, 1] = (s1 * m11 - sx * (sx1 * syy - sxy * sy1) + sy * (sx1 * sxy - sxx * sy1)) / det
+            got[m] = True
+            any_new = True
+        if not any_new:
+            break
+        for m in range(M):
+            if got[m]:
+                qo[m, 0], qo[m, 1] = new[m, 0], new[m, 1]
+                kn[m] = True
+                filled[m] = True
+    return qo, filled

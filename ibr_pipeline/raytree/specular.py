@@ -46,6 +46,11 @@ class SpecularOptions:
     min_step_px: float = 1.0 / 64  # a pixel stops when its step is shorter (0: never)
     snap_radius: int = 2      # after the descent, undefined pixels test the old pixels in a
                               # (2r+1)^2 window around their best location (0: off)
+    fill_radius: int = 3      # our extension: undefined pixels take q from an affine fit of the
+                              # found q of their defined neighbours in a (2r+1)^2 new-image
+                              # window and read the node there (position_fill); 0: off, i.e.
+                              # the paper's colour push-pull alone (§3.5)
+    fill_rounds: int = 4      # ... rounds (each reaches one band further into a hole)
 
 
 @dataclass
@@ -273,6 +278,61 @@ def _snap(q, E, w, omega, energy: _Energy, valid: torch.Tensor, r: int):
     better = Eb < E
     qn = torch.stack([xs.gather(1, j[:, None])[:, 0], ys.gather(1, j[:, None])[:, 0]], -1).to(q.dtype)
     return torch.where(better[:, None], qn, q), torch.where(better, Eb, E)
+
+
+def position_fill(q: torch.Tensor, known: torch.Tensor, pix: torch.Tensor, size: tuple[int, int],
+                  radius: int, rounds: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Position-domain filling of undefined pixels (our extension after §3.4's search; §3.5
+    push-pull of colours then only fills what this cannot reach). Each round, every not-yet-known
+    pixel of the searched set with >= 3 known pixels of the set in its (2 radius + 1)^2 window of
+    the new image gets q = c0 of the least-squares affine fit q = c0 + c1 dx + c2 dy of those
+    neighbours' q (skipped in a round where the offsets are collinear); Jacobi rounds, early stop.
+
+    Why positions, not colours: the undefined pixels sit on rims and borders (sphere silhouette,
+    mirror frame), where the reconstructed normal (§3.3, 7x7 blur across the depth edge) makes
+    omega itself wrong, so no search can get within epsilon; the flow q of the neighbours is
+    smooth there (affine for a planar mirror), and the node read at the extrapolated q keeps the
+    reflected texture where push-pull smears it. No Delta re-check for the same reason (omega is
+    wrong). q (M, 2), known (M,) bool, pix (M,) flat indices of a size = (W, H) image.
+    Returns (q (M, 2), filled (M,) bool: filled here). = nbsearch.position_fill."""
+    Wn, Hn = size
+    M = len(q)
+    filled = torch.zeros(M, dtype=torch.bool, device=q.device)
+    if M == 0 or radius <= 0 or rounds <= 0 or bool(known.all()):
+        return q, filled
+    q, kn = q.clone(), known.clone()
+    grid = torch.full((Wn * Hn,), -1, dtype=torch.long, device=q.device)
+    grid[pix] = torch.arange(M, device=q.device)
+    d = torch.arange(-radius, radius + 1, device=q.device)
+    oy, ox = torch.meshgrid(d, d, indexing="ij")
+    keep = (ox != 0) | (oy != 0)
+    ox, oy = ox[keep], oy[keep]                                     # (K,)
+    for _ in range(rounds):
+        bad = torch.nonzero(~kn).squeeze(-1)
+        x = (pix[bad] % Wn)[:, None] + ox
+        y = (pix[bad] // Wn)[:, None] + oy                           # (B, K)
+        inside = (x >= 0) & (x < Wn) & (y >= 0) & (y < Hn)
+        j = torch.where(inside, grid[(y.clamp(0, Hn - 1) * Wn + x.clamp(0, Wn - 1))], -1)
+        use = (j >= 0) & kn[j.clamp_min(0)]
+        u = use.double()
+        fx, fy = ox.double() * u, oy.double() * u
+        qj = q[j.clamp_min(0)].double() * u[..., None]               # (B, K, 2)
+        n, sx, sy = u.sum(1), fx.sum(1), fy.sum(1)
+        sxx, sxy, syy = (fx * ox).sum(1), (fx * oy).sum(1), (fy * oy).sum(1)
+        s, sxq, syq = qj.sum(1), (qj * ox.double()[:, None]).sum(1), (qj * oy.double()[:, None]).sum(1)
+        m11 = sxx * syy - sxy * sxy
+        det = n * m11 - sx * (sx * syy - sxy * sy) + sy * (sx * sxy - sxx * sy)
+        c0 = (s * m11[:, None] - sx[:, None] * (sxq * syy[:, None] - sxy[:, None] * syq)
+              + sy[:, None] * (sxq * sxy[:, None] - sxx[:, None] * syq)) / det.clamp_min(0.5)[:, None]
+        ok = (n >= 3) & (det > 0.5)   # integer offsets: det = 0 when collinear (no fit across
+                                      # the line; a later round may see more neighbours)
+        if not bool(ok.any()):
+            break
+        b = bad[ok]
+        q[b] = c0[ok].to(q.dtype)
+        kn[b] = True
+        filled[b] = True
+    return q, filled
 
 
 def brute_force_search(w: np.ndarray, omega: np.ndarray, Ws: np.ndarray, valid: np.ndarray):

@@ -25,7 +25,7 @@ from .decode import DecodeOptions, Decoded, decode, eta_of
 from .diffuse import diffuse_flow, projection_matrix
 from .encoding import FRESNEL_DIELECTRIC, FRESNEL_NONE, FRESNEL_PANE, REFLECTIVE, RayTree
 from .fill import push_pull
-from .specular import SpecularOptions, quad_table, specular_flow
+from .specular import SpecularOptions, position_fill, quad_table, specular_flow
 
 
 @dataclass
@@ -47,6 +47,7 @@ class WarpOptions:
         for name, val, lo, hi in (("steps", s.steps, 0, 1000), ("eps_deg", s.eps_deg, 1e-4, 90),
                                   ("step_scale", s.step_scale, 1e-4, 10),
                                   ("fpi_eps", self.fpi_eps, 1e-3, 10),
+                                  ("fill_radius", s.fill_radius, 0, 16), ("fill_rounds", s.fill_rounds, 0, 64),
                                   ("normal_ksize", self.decode.normal_ksize, 1, 31)):
             if not (lo <= val <= hi):
                 raise InputError(f"warp option {name} must be in [{lo}, {hi}], got {val}")
@@ -60,6 +61,8 @@ class WarpResult:
     diffuse_ok: np.ndarray            # (Hn, Wn) diffuse flow defined (else disocclusion hole)
     region: list[np.ndarray]          # per node (Hn, Wn) the node contributes at this new pixel
     defined: list[np.ndarray]         # per node (Hn, Wn) flow found (specular: Delta <= eps)
+    filled: list[np.ndarray] = field(default_factory=list)  # per node (Hn, Wn) undefined pixels
+                                      # filled in the position domain (specular.position_fill)
     history: dict = field(default_factory=dict)   # node -> (pixels (M, 2), Delta (steps+1, M)
                                                   # per descent step, final Delta (M,) after
                                                   # the discrete check)
@@ -215,6 +218,7 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
     def_node = [torch.ones(Ms, dtype=torch.bool, device=dev)] + [None] * (n_nodes - 1)
     val_node = [None] * n_nodes
     wgt_node = [None] * n_nodes
+    fill_node = [torch.zeros(Ms, dtype=torch.bool, device=dev)] * n_nodes
     history = {}
     for i in range(1, n_nodes):
         t1 = time.perf_counter()
@@ -225,6 +229,7 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
         ri = torch.nonzero(reg).squeeze(-1)
         q_i = torch.zeros(Ms, 2, device=dev)
         def_i = torch.zeros(Ms, dtype=torch.bool, device=dev)
+        fill_i = torch.zeros(Ms, dtype=torch.bool, device=dev)
         val_i = torch.zeros(Ms, 3, device=dev)
         if p == 0 and len(ri):
             w, n = w_s[ri], n_s[ri]
@@ -239,17 +244,28 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
                 pp = pix_s[ri]
                 history[i] = (_np(torch.stack([pp % Wn, pp // Wn], -1)), _np(res.history),
                               _np(res.energy))
+            so = o.specular
+            if so.fill_radius > 0 and so.fill_rounds > 0 and bool(dfn.any()) and not bool(dfn.all()):
+                # our extension: undefined pixels take q from their defined neighbours' flow
+                qc, fl = position_fill(qc, dfn, pix_s[ri], (Wn, Hn), so.fill_radius, so.fill_rounds)
+                fill_i[ri] = fl   # kept below only where the node has a valid tap at q
+                dfn = dfn | fl
         elif len(ri):  # deeper node: parent's flow (§3.4 "Deeper ray flows")
             qc, dfn = q_node[p][ri] - off, def_node[p][ri]
         if len(ri):
             dsel = torch.nonzero(dfn).squeeze(-1)
             v, _, d_ok = s_i.sample(rgb_c, qc[dsel])
-            q_i[ri] = qc + off
             dd = torch.zeros_like(dfn)
             dd[dsel] = d_ok
+            if bool(fill_i[ri].any()):   # a filled pixel without a valid tap: undefined again
+                fi = fill_i[ri]
+                qc = torch.where((fi & ~dd)[:, None], res.q, qc)
+                fill_i[ri] = fi & dd
+            q_i[ri] = qc + off
             def_i[ri] = dd
             val_i[ri[dsel]] = v
-        q_node[i], def_node[i], val_node[i] = q_i, def_i, val_i
+        q_node[i], def_node[i], val_node[i] = q_i, def_i, val_i   # def_node: has a value
+        fill_node[i] = fill_i
         rw = torch.where(none, torch.ones_like(F_s), F_s) if kinds[i] == REFLECTIVE else \
             torch.where(none, torch.zeros_like(F_s), 1 - F_s)
         wgt_node[i] = torch.where(reg, rw, torch.zeros_like(rw))
@@ -273,6 +289,7 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
     nodes_np = [_np(root[:, :3].view(Hn, Wn, 3))]
     region_np = [_np(flow.ok)]
     defined_np = [_np(flow.ok)]
+    filled_np = [np.zeros((Hn, Wn), bool)]
     for i in range(1, n_nodes):
         t1 = time.perf_counter()
         wi = root[:, 2 + i]
@@ -295,14 +312,17 @@ def _warp_decoded(dec: Decoded, camera, options: WarpOptions | None, record_hist
         img[ui] += wi[ui, None] * node[ui]
         nodes_np.append(_np(node.view(Hn, Wn, 3)))
         region_np.append(_np(use.view(Hn, Wn)))
-        defined_np.append(_np(d_full.view(Hn, Wn)))
+        f_full = torch.zeros(N, dtype=torch.bool, device=dev)
+        f_full[pix_s] = fill_node[i]
+        defined_np.append(_np((d_full & ~f_full).view(Hn, Wn)))   # found by the search
+        filled_np.append(_np(f_full.view(Hn, Wn)))
         tm["composite"] = tm.get("composite", 0.0) + _sync_time(dev, t1)
     tm.setdefault("composite", 0.0)
     out = _np(img.view(Hn, Wn, 3))
     tm["warp_total"] = _sync_time(dev, t0)
     return WarpResult(image=out, nodes=nodes_np, fresnel=_np(F_full.view(Hn, Wn)),
                       diffuse_ok=_np(flow.ok), region=region_np, defined=defined_np,
-                      history=history, timings=tm)
+                      filled=filled_np, history=history, timings=tm)
 
 
 def old_composite(dec: Decoded) -> torch.Tensor:

@@ -158,6 +158,21 @@ def _flow(dec, R, camera, o, extra, out, c0):
                           float(o.fpi_eps), True, out, c0)
 
 
+def _position_fill(qc, dfn, v, pix, T, Wn, Hn, s) -> np.ndarray:
+    """Our extension (specular.position_fill): undefined pixels of one node's search take q
+    from the affine fit of their defined neighbours' q and read the node there; qc and v are
+    updated in place. Returns the filled mask (the node had a valid tap there)."""
+    filled = np.zeros(len(qc), bool)
+    if s.fill_radius <= 0 or s.fill_rounds <= 0 or dfn.all() or not dfn.any():
+        return filled
+    qf, fl = ns.position_fill(qc, dfn, pix.astype(np.int64), Wn, Hn, int(s.fill_radius), int(s.fill_rounds))
+    fi = np.flatnonzero(fl)
+    vf, ok = ns.sample_points(qf[fi], T["qok"], T["valid"], T["rgb"], T["W"], T["H"])
+    fi = fi[ok]
+    qc[fi], v[fi], filled[fi] = qf[fi], vf[ok], True
+    return filled
+
+
 def warp_decoded(dec, camera, o, record_history: bool = False):
     """warp._warp_decoded with the numba kernels; returns warp.WarpResult."""
     from .diffuse import projection_matrix
@@ -186,6 +201,7 @@ def warp_decoded(dec, camera, o, record_history: bool = False):
     q_node = [src[pix_s]] + [None] * (n_nodes - 1)
     def_node = [np.ones(Ms, bool)] + [None] * (n_nodes - 1)
     val_node = [None] * n_nodes
+    fill_node = [np.zeros(Ms, bool)] * n_nodes
     history = {}
     s = o.specular
     for i in range(1, n_nodes):
@@ -197,6 +213,7 @@ def warp_decoded(dec, camera, o, record_history: bool = False):
         ri = np.flatnonzero(reg)
         q_i = np.zeros((Ms, 2), np.float32)
         def_i = np.zeros(Ms, bool)
+        fl_i = np.zeros(Ms, bool)
         val_i = np.zeros((Ms, 3), np.float32)
         if p == 0 and len(ri):
             refl = kinds[i] == REFLECTIVE
@@ -215,6 +232,8 @@ def warp_decoded(dec, camera, o, record_history: bool = False):
             if record_history:
                 pp = pix_s[ri]
                 history[i] = (np.stack([pp % Wn, pp // Wn], -1), hist, E)
+            fl_i[ri] = _position_fill(qc, dfn, v, pix_s[ri], T, Wn, Hn, s)
+            dfn = dfn | fl_i[ri]
         elif len(ri):  # deeper node: parent's flow (§3.4 "Deeper ray flows")
             qc = q_node[p][ri] - off
             v, d_ok = ns.sample_points(qc, T["qok"], T["valid"], T["rgb"], T["W"], T["H"])
@@ -224,7 +243,8 @@ def warp_decoded(dec, camera, o, record_history: bool = False):
             q_i[ri] = qc + off
             def_i[ri] = dfn
             val_i[ri] = v
-        q_node[i], def_node[i], val_node[i] = q_i, def_i, val_i
+        q_node[i], def_node[i], val_node[i] = q_i, def_i, val_i   # def_node: has a value
+        fill_node[i] = fl_i
         rw = np.where(none, 1.0, F_s) if kinds[i] == REFLECTIVE else np.where(none, 0.0, 1.0 - F_s)
         root[pix_s, 2 + i] = np.where(reg, rw, 0.0)
         name = "warp_reflection" if kinds[i] == REFLECTIVE else "warp_refraction"
@@ -239,6 +259,7 @@ def warp_decoded(dec, camera, o, record_history: bool = False):
     F_full = np.ones(N, np.float32)
     F_full[pix_s] = F_s
     nodes_np, region_np, defined_np = [root[:, :3].reshape(Hn, Wn, 3)], [okv], [okv]
+    filled_np = [np.zeros((Hn, Wn), bool)]
     for i in range(1, n_nodes):
         t1 = time.perf_counter()
         use, ubox = ns.positive(root, 2 + i, Wn)   # the node contributes (incl. filled holes)
@@ -261,12 +282,16 @@ def warp_decoded(dec, camera, o, record_history: bool = False):
         ns.add_weighted(img, root, 2 + i, node, use)
         nodes_np.append(nv)
         region_np.append(use.reshape(Hn, Wn))
-        defined_np.append(dv)
+        f_full = np.zeros(N, bool)
+        f_full[pix_s] = fill_node[i]
+        defined_np.append(dv & ~f_full.reshape(Hn, Wn))   # found by the search (Delta <= eps)
+        filled_np.append(f_full.reshape(Hn, Wn))
         tm["composite"] = tm.get("composite", 0.0) + time.perf_counter() - t1
     tm.setdefault("composite", 0.0)
     tm["warp_total"] = time.perf_counter() - t0
     return WarpResult(image=img.reshape(Hn, Wn, 3), nodes=nodes_np, fresnel=F_full.reshape(Hn, Wn),
-                      diffuse_ok=okv, region=region_np, defined=defined_np, history=history, timings=tm)
+                      diffuse_ok=okv, region=region_np, defined=defined_np, filled=filled_np,
+                      history=history, timings=tm)
 
 
 def naive_warp(dec, camera, o) -> np.ndarray:

@@ -106,9 +106,10 @@ def test_warp_matches_torch(case):
     for i in range(case.tree.n_nodes):
         assert _agree(rn.region[i], rt.region[i], 2e-3)
         assert _agree(rn.defined[i], rt.defined[i], 2e-3)
+        assert _agree(rn.filled[i], rt.filled[i], 2e-3)   # position-domain fill (our extension)
     same = rn.diffuse_ok == rt.diffuse_ok
     for i in range(1, case.tree.n_nodes):
-        same &= rn.defined[i] == rt.defined[i]
+        same &= (rn.defined[i] == rt.defined[i]) & (rn.filled[i] == rt.filled[i])
     assert same.mean() > 0.99
     d = np.abs(rn.image - rt.image).max(-1)
     assert np.median(d[same]) < 1e-5 and (d[same] > 1e-3).mean() < 5e-3
