@@ -64,7 +64,8 @@ def test_mask_is_4cm_square():
         de.refinement_mask(e, d[:10], cam.K[0, 0])
 
 
-def test_geodesic_knn_matches_dijkstra():
+@pytest.mark.parametrize("method", ["dijkstra", "relax"])
+def test_geodesic_knn_matches_dijkstra(method):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
     rng = np.random.default_rng(0)
@@ -74,7 +75,7 @@ def test_geodesic_knn_matches_dijkstra():
     region[2:10, 3:12] = True
     seeds = np.zeros((h, w), bool)
     seeds[1, 3:12] = seeds[10, 3:12] = seeds[2:10, 2] = True
-    idx, lab, dist = geo.geodesic_knn(cost, region, seeds, k=4)
+    idx, lab, dist = geo.geodesic_knn(cost, region, seeds, k=4, method=method)
     # reference: Dijkstra on the graph of region + seed pixels (paths through region only)
     rows, cols, vals = [], [], []
     for y in range(h):
@@ -92,6 +93,30 @@ def test_geodesic_knn_matches_dijkstra():
     for r, p in enumerate(idx):
         ref = np.sort(D[:, p])[:4]
         assert np.allclose(np.sort(dist[r]), ref, atol=1e-9)
+
+
+def test_geodesic_knn_fast_path_equals_the_relaxation():
+    """The numba multi-label Dijkstra (view_depth's default) and the vectorised relaxation reach
+    the same labels and distances on a realistic region: a ragged mask with holes, an edge-cost
+    map with strong lines, seeds everywhere outside (random costs: no exact ties)."""
+    rng = np.random.default_rng(1)
+    h, w = 50, 70
+    cost = 0.05 + rng.uniform(0, 0.02, (h, w))
+    cost[:, 30] += 5.0                      # a colour edge
+    cost[20, 10:60] += 3.0
+    region = rng.uniform(size=(h, w)) < 0.9
+    region[:, :5] = False
+    region[25:28, 40:44] = False           # an island of seeds inside
+    seeds = ~region & (rng.uniform(size=(h, w)) < 0.8)
+    i1, l1, d1 = geo.geodesic_knn(cost, region, seeds, k=4, method="dijkstra")
+    i2, l2, d2 = geo.geodesic_knn(cost, region, seeds, k=4, method="relax")
+    assert np.array_equal(i1, i2)
+    assert np.all(np.diff(np.where(np.isfinite(d1), d1, 1e9), axis=1) >= 0)   # nearest first
+    assert np.array_equal(np.isinf(d1), np.isinf(d2))
+    assert np.allclose(np.where(np.isinf(d1), 0, d1), np.where(np.isinf(d2), 0, d2), rtol=1e-12)
+    assert (l1 == l2).mean() > 0.999
+    with pytest.raises(ValueError):
+        geo.geodesic_knn(cost, region, seeds, method="bfs")
 
 
 def test_eq2_moves_a_misplaced_edge_to_the_colour_edge():
