@@ -28,6 +28,10 @@ class DecodeOptions:
     normal_diff: str = "forward"   # "forward": the paper's neighbour differences; "min": the
                                    # shorter of forward/backward difference per axis (fewer
                                    # normals across depth edges; an option, not the default)
+    normal_edge_rel: float = 0.02  # our extension: the 7x7 blur of the root normals skips taps
+                                   # whose distance to the camera differs from the centre's by
+                                   # more than this fraction (edge-stopping: a sphere's rim no
+                                   # longer takes the wall's normals); 0: the paper's plain blur
 
 
 @dataclass
@@ -56,14 +60,20 @@ class Decoded:
 
 
 def reconstruct_normals(W: torch.Tensor, valid: torch.Tensor, eye: torch.Tensor | None = None,
-                        ksize: int = 7, sigma: float = 0.0, diff: str = "forward") -> torch.Tensor:
+                        ksize: int = 7, sigma: float = 0.0, diff: str = "forward",
+                        edge_rel: float = 0.02) -> torch.Tensor:
     """Screen-space normals from world positions (H, W, 3), §3.3 "Normals":
     n = (W(l+(0,1)) - W(l)) x (W(l+(1,0)) - W(l)), then a ksize x ksize Gaussian (Fig. 3).
-    At the last row/column the backward difference is used. Normals face `eye` when given."""
+    At the last row/column the backward difference is used. Normals face `eye` when given.
+    edge_rel > 0 (with `eye`; our extension): a forward difference across a depth edge (distance
+    to the camera changes by > edge_rel) is replaced by the backward one where that one is
+    smooth, and the blur is edge-stopping (edge_blur)."""
     ops.check(W, (None, None, 3), "positions")
     ops.check(valid, tuple(W.shape[:2]), "valid")
     if diff not in ("forward", "min"):
         raise ValueError(f"normal_diff must be 'forward' or 'min', got {diff!r}")
+    edge = edge_rel > 0 and eye is not None
+    z = (W.double() - eye.double()).norm(dim=-1) if edge else None   # distance to the camera
 
     def diffs(axis: int):
         fwd = torch.zeros_like(W)
@@ -84,6 +94,16 @@ def reconstruct_normals(W: torch.Tensor, valid: torch.Tensor, eye: torch.Tensor 
             bv[:, 1:] = valid[:, 1:] & valid[:, :-1]
         if diff == "forward":
             use_b = ~fv & bv
+            if edge:   # our extension: not across a depth edge when the other side is smooth
+                jump_f = torch.zeros_like(valid)
+                jump_b = torch.zeros_like(valid)
+                if axis == 0:
+                    jump_f[:-1] = (z[1:] - z[:-1]).abs() > edge_rel * z[:-1]
+                    jump_b[1:] = (z[1:] - z[:-1]).abs() > edge_rel * z[1:]
+                else:
+                    jump_f[:, :-1] = (z[:, 1:] - z[:, :-1]).abs() > edge_rel * z[:, :-1]
+                    jump_b[:, 1:] = (z[:, 1:] - z[:, :-1]).abs() > edge_rel * z[:, 1:]
+                use_b = use_b | (fv & bv & jump_f & ~jump_b)
         else:
             use_b = bv & (~fv | (bwd.norm(dim=-1) < fwd.norm(dim=-1)))
         return torch.where(use_b[..., None], bwd, fwd), fv | bv
@@ -96,9 +116,43 @@ def reconstruct_normals(W: torch.Tensor, valid: torch.Tensor, eye: torch.Tensor 
     if eye is not None:  # orient towards the camera (a backward difference flips the sign)
         flip = ((eye - W) * n).sum(-1, keepdim=True) < 0
         n = torch.where(flip, -n, n)
-    if ksize > 1:  # §3.3: 7x7 Gaussian against discretisation / quantisation errors (Fig. 3)
+    if ksize > 1 and edge:
+        n = edge_blur(n, ok, z, ksize, sigma, edge_rel)
+    elif ksize > 1:  # §3.3: 7x7 Gaussian against discretisation / quantisation errors (Fig. 3)
         n = ops.blur_masked(n, ok, ksize, sigma)
     return ops.normalize(n)
+
+
+def edge_blur(n: torch.Tensor, ok: torch.Tensor, z: torch.Tensor, ksize: int, sigma: float,
+              rel: float) -> torch.Tensor:
+    """Edge-stopping version of §3.3's Gaussian normal blur (our extension): pixel i averages the
+    defined normals n_j (ok) of its ksize x ksize window with weights g(dx) g(dy), only taps with
+    |z_j - z_i| <= rel z_i (z: distance to the camera, float64); taps outside the image have no
+    weight. Where no tap passes, the window's defined normals without the depth test. The paper's
+    blur mixes both sides of a depth edge, so a sphere's rim (and W_r there, Eq. 1) took the
+    background's normals: omega was wrong there and the search could not reach 1 deg (§3.4).
+    (H, W, 3) -> (H, W, 3), not normalised. = nbkernels.normals_box with rel > 0."""
+    k = ops.gaussian_kernel(ksize, sigma, "cpu", torch.float64).tolist()
+    r = ksize // 2
+    H, W = ok.shape
+    F = torch.nn.functional
+    nd = n.double()
+    npd = F.pad(nd.permute(2, 0, 1), (r, r, r, r))                     # zero outside
+    zp = F.pad(z[None], (r, r, r, r))[0]
+    okp = F.pad(ok.double()[None], (r, r, r, r))[0]
+    acc, wsum = torch.zeros_like(nd), torch.zeros_like(z)
+    acc0, wsum0 = torch.zeros_like(nd), torch.zeros_like(z)
+    for a in range(ksize):
+        for b in range(ksize):
+            w0 = okp[a:a + H, b:b + W] * (k[a] * k[b])
+            w = w0 * ((zp[a:a + H, b:b + W] - z).abs() <= rel * z)
+            nj = npd[:, a:a + H, b:b + W].permute(1, 2, 0)
+            acc += w[..., None] * nj
+            wsum += w
+            acc0 += w0[..., None] * nj
+            wsum0 += w0
+    out = torch.where((wsum > 0)[..., None], acc, acc0)
+    return out.to(n.dtype)
 
 
 def decode(tree: RayTree, device: str | torch.device = "cpu", options: DecodeOptions | None = None,
@@ -149,7 +203,7 @@ def decode(tree: RayTree, device: str | torch.device = "cpu", options: DecodeOpt
         nd = ops.normalize(torch.as_tensor(tree.normal, **f32))
     elif y1 > y0 and x1 > x0:
         nd[crop] = reconstruct_normals(Wd[crop], valid[0][crop], center, opts.normal_ksize,
-                                       opts.normal_sigma, opts.normal_diff)
+                                       opts.normal_sigma, opts.normal_diff, opts.normal_edge_rel)
     ops.sync(dev)
     t2 = time.perf_counter()
     ior = torch.as_tensor(tree.ior, **f32)

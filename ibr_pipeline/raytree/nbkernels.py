@@ -156,18 +156,35 @@ def root_labels(valid, fres):
     return bits, label
 
 
-@njit(cache=True, parallel=True)
-def normals_box(Wd, valid, eye, y0, y1, x0, x1, kern, out):
+@njit(cache=True)
+def normals_box(Wd, valid, eye, y0, y1, x0, x1, kern, out, rel=0.0):
     """§3.3 "Normals" on the crop (y0:y1, x0:x1) as its own image (= decode.reconstruct_normals
     of the crop, forward differences): n = (W(l+(0,1)) - W(l)) x (W(l+(1,0)) - W(l)) (backward
     difference where the forward one is unavailable), oriented towards `eye`, then the masked
     separable Gaussian `kern` (Fig. 3; replicate border, normalised over the valid normals) and
-    normalised; written to out[y0:y1, x0:x1]."""
+    normalised; written to out[y0:y1, x0:x1]. rel > 0 (our extension, = decode.edge_blur): the
+    2-D edge-stopping blur instead (taps with |z_j - z_i| <= rel z_i, z the distance to `eye`;
+    no weight outside the crop; no tap passing: the window's defined normals)."""
     h, w = y1 - y0, x1 - x0
-    r = len(kern) // 2
+    A = _raw_normals(Wd, valid, eye, y0, x0, h, w, rel)
+    if rel > 0:   # the edge-stopping blur (our extension)
+        _edge_blur(Wd, eye, y0, x0, h, w, kern, rel, A, out)
+    else:
+        _blur_sep(y0, x0, h, w, kern, A, out)
+
+
+@njit(cache=True, parallel=True)
+def _raw_normals(Wd, valid, eye, y0, x0, h, w, rel):
     A = np.zeros((h, w, 4))
     for i in prange(h):
-        _raw_normals_row(Wd, valid, eye, y0 + i, x0, i == 0, i == h - 1, w, A[i])
+        _raw_normals_row(Wd, valid, eye, y0 + i, x0, i == 0, i == h - 1, w, A[i], rel)
+    return A
+
+
+@njit(cache=True, parallel=True)
+def _blur_sep(y0, x0, h, w, kern, A, out):
+    """§3.3's separable masked Gaussian of the raw normals A (replicate border), normalised."""
+    r = len(kern) // 2
     B = np.zeros((h, w, 4))
     for i in prange(h):   # horizontal pass, replicate border
         for j in range(w):
@@ -189,25 +206,103 @@ def normals_box(Wd, valid, eye, y0, y1, x0, x1, kern, out):
             out[y0 + i, x0 + j, 0], out[y0 + i, x0 + j, 1], out[y0 + i, x0 + j, 2] = nx, ny, nz
 
 
+@njit(cache=True, parallel=True)
+def _edge_blur(Wd, eye, y0, x0, h, w, kern, rel, A, out):
+    """normals_box's edge-stopping blur (rel > 0) of the raw normals A (h, w, 4) (= decode.
+    edge_blur). Where every defined tap of the window passes the depth test (window min / max of
+    z, separable), the value is the separable zero-padded Gaussian sum (the same sum); only
+    windows straddling a depth edge run the 2-D tap loop."""
+    r = len(kern) // 2
+    K = len(kern)
+    Z = np.empty((h, w))
+    lo = np.empty((h, w))
+    hi = np.empty((h, w))
+    B = np.zeros((h, w, 3))
+    for i in prange(h):   # distance to the camera; horizontal min / max and blur, zero outside
+        for j in range(w):
+            Z[i, j] = _dist(Wd, eye, y0 + i, x0 + j)
+        for j in range(w):
+            mn, mx = np.inf, -np.inf
+            for t in range(K):
+                jj = j + t - r
+                if jj < 0 or jj >= w or A[i, jj, 3] == 0:
+                    continue
+                zj = _dist(Wd, eye, y0 + i, x0 + jj)
+                mn, mx = min(mn, zj), max(mx, zj)
+                for c in range(3):
+                    B[i, j, c] += kern[t] * A[i, jj, c]
+            lo[i, j], hi[i, j] = mn, mx
+    for i in prange(h):
+        for j in range(w):
+            z = Z[i, j]
+            s0 = s1 = s2 = 0.0
+            mn, mx = np.inf, -np.inf
+            for t in range(K):
+                ii = i + t - r
+                if ii < 0 or ii >= h:
+                    continue
+                s0 += kern[t] * B[ii, j, 0]
+                s1 += kern[t] * B[ii, j, 1]
+                s2 += kern[t] * B[ii, j, 2]
+                mn, mx = min(mn, lo[ii, j]), max(mx, hi[ii, j])
+            if mx - z > rel * z or z - mn > rel * z:   # a tap across a depth edge: 2-D loop
+                e0 = e1 = e2 = sw = 0.0
+                for a in range(K):
+                    ii = i + a - r
+                    if ii < 0 or ii >= h:
+                        continue
+                    for b in range(K):
+                        jj = j + b - r
+                        if jj < 0 or jj >= w or A[ii, jj, 3] == 0 or abs(Z[ii, jj] - z) > rel * z:
+                            continue
+                        g = kern[a] * kern[b]
+                        e0 += g * A[ii, jj, 0]
+                        e1 += g * A[ii, jj, 1]
+                        e2 += g * A[ii, jj, 2]
+                        sw += g
+                if sw > 0:   # else: no tap passes, the window's defined normals (s)
+                    s0, s1, s2 = e0, e1, e2
+            nx, ny, nz = _norm3(s0, s1, s2)
+            out[y0 + i, x0 + j, 0], out[y0 + i, x0 + j, 1], out[y0 + i, x0 + j, 2] = nx, ny, nz
+
+
 @njit(cache=True)
-def _raw_normals_row(Wd, valid, eye, y, x0, first_row, last_row, w, A):
-    """Unblurred normals of crop row y (normals_box) into A (w, 4): n, 1 where defined."""
+def _dist(Wd, eye, y, x):
+    a0, a1, a2 = Wd[y, x, 0] - eye[0], Wd[y, x, 1] - eye[1], Wd[y, x, 2] - eye[2]
+    return math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+
+
+@njit(cache=True)
+def _raw_normals_row(Wd, valid, eye, y, x0, first_row, last_row, w, A, rel):
+    """Unblurred normals of crop row y (normals_box) into A (w, 4): n, 1 where defined.
+    rel > 0 (our extension, = decode.reconstruct_normals): per axis the backward difference
+    replaces a forward one that crosses a depth edge (|z_next - z| > rel z) when it does not."""
     for j in range(w):
         x = x0 + j
         if not valid[y, x]:
             continue
+        fy = not last_row and valid[y + 1, x]
+        by = not first_row and valid[y - 1, x]
+        fx = j < w - 1 and valid[y, x + 1]
+        bx = j > 0 and valid[y, x - 1]
+        if rel > 0:
+            z = _dist(Wd, eye, y, x)
+            if fy and by and abs(_dist(Wd, eye, y + 1, x) - z) > rel * z and abs(_dist(Wd, eye, y - 1, x) - z) <= rel * z:
+                fy = False
+            if fx and bx and abs(_dist(Wd, eye, y, x + 1) - z) > rel * z and abs(_dist(Wd, eye, y, x - 1) - z) <= rel * z:
+                fx = False
         # W(l + (0, 1)) - W(l): one row down (backward difference at the crop's last row or
         # where the lower neighbour is invalid)
-        if not last_row and valid[y + 1, x]:
+        if fy:
             a0, a1, a2 = Wd[y + 1, x, 0] - Wd[y, x, 0], Wd[y + 1, x, 1] - Wd[y, x, 1], Wd[y + 1, x, 2] - Wd[y, x, 2]
-        elif not first_row and valid[y - 1, x]:
+        elif by:
             a0, a1, a2 = Wd[y, x, 0] - Wd[y - 1, x, 0], Wd[y, x, 1] - Wd[y - 1, x, 1], Wd[y, x, 2] - Wd[y - 1, x, 2]
         else:
             continue
         # W(l + (1, 0)) - W(l): one column right
-        if j < w - 1 and valid[y, x + 1]:
+        if fx:
             b0, b1, b2 = Wd[y, x + 1, 0] - Wd[y, x, 0], Wd[y, x + 1, 1] - Wd[y, x, 1], Wd[y, x + 1, 2] - Wd[y, x, 2]
-        elif j > 0 and valid[y, x - 1]:
+        elif bx:
             b0, b1, b2 = Wd[y, x, 0] - Wd[y, x - 1, 0], Wd[y, x, 1] - Wd[y, x - 1, 1], Wd[y, x, 2] - Wd[y, x - 1, 2]
         else:
             continue

@@ -56,7 +56,7 @@ def decode(tree: RayTree, opts, timings: dict | None = None):
         nd = ops.normalize(torch.as_tensor(tree.normal, dtype=torch.float32)).numpy()
     elif y1 > y0 and x1 > x0:
         kern = ops.gaussian_kernel(opts.normal_ksize, opts.normal_sigma, "cpu").numpy().astype(np.float64)
-        nk.normals_box(pos[0], valid[0], c64, y0, y1, x0, x1, kern, nd)
+        nk.normals_box(pos[0], valid[0], c64, y0, y1, x0, x1, kern, nd, float(opts.normal_edge_rel))
     t2 = time.perf_counter()
     ior = _f32(tree.ior)
     fres = np.asarray(tree.fresnel).astype(np.int32)
