@@ -26,19 +26,25 @@ def knn_dijkstra(flat_cost, h, w, idx, seed_flat, k):  # pragma: no cover - comp
     dist = np.full((m, k), np.inf)
     lab = np.full((m, k), -1, np.int64)
     cnt = np.zeros(m, np.int64)
-    heap = [(0.0, np.int64(0), np.int64(0))]
-    heap.pop()
-    dys = (0, 0, 1, -1)
-    dxs = (1, -1, 0, 0)
-    for r in range(m):          # a seed next to a region pixel starts a path (step cost)
+    nb = np.full((m, 4), -1, np.int64)       # 4-neighbours' flat indices, -1 outside the image
+    for r in range(m):
         p = idx[r]
         y, x = p // w, p % w
+        if x + 1 < w:
+            nb[r, 0] = p + 1
+        if x > 0:
+            nb[r, 1] = p - 1
+        if y + 1 < h:
+            nb[r, 2] = p + w
+        if y > 0:
+            nb[r, 3] = p - w
+    heap = [(0.0, np.int64(0), np.int64(0))]
+    heap.pop()
+    for r in range(m):          # a seed next to a region pixel starts a path (step cost)
         for c in range(4):
-            yy, xx = y + dys[c], x + dxs[c]
-            if 0 <= yy < h and 0 <= xx < w:
-                q = yy * w + xx
-                if seed_flat[q]:
-                    heapq.heappush(heap, (0.5 * (flat_cost[p] + flat_cost[q]), np.int64(r), np.int64(q)))
+            q = nb[r, c]
+            if q >= 0 and seed_flat[q]:
+                heapq.heappush(heap, (0.5 * (flat_cost[idx[r]] + flat_cost[q]), np.int64(r), q))
     while len(heap) > 0:
         d, r, L = heapq.heappop(heap)
         n = cnt[r]
@@ -54,20 +60,16 @@ def knn_dijkstra(flat_cost, h, w, idx, seed_flat, k):  # pragma: no cover - comp
         dist[r, n] = d
         lab[r, n] = L
         cnt[r] = n + 1
-        p = idx[r]
-        y, x = p // w, p % w
         for c in range(4):
-            yy, xx = y + dys[c], x + dxs[c]
-            if 0 <= yy < h and 0 <= xx < w:
-                q = yy * w + xx
-                s = node[q]
-                if s < 0 or cnt[s] >= k:
-                    continue
-                dup = False
-                for j in range(cnt[s]):
-                    if lab[s, j] == L:
-                        dup = True
-                        break
-                if not dup:
-                    heapq.heappush(heap, (d + 0.5 * (flat_cost[p] + flat_cost[q]), s, L))
+            q = nb[r, c]
+            s = node[q] if q >= 0 else -1
+            if s < 0 or cnt[s] >= k:
+                continue
+            dup = False
+            for j in range(cnt[s]):
+                if lab[s, j] == L:
+                    dup = True
+                    break
+            if not dup:
+                heapq.heappush(heap, (d + 0.5 * (flat_cost[idx[r]] + flat_cost[q]), s, L))
     return lab, dist
