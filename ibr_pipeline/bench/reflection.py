@@ -152,6 +152,9 @@ ABLATION = [  # cumulative rows of the issue's table, then the additions of this
     ("stage defaults, M1 vertices off", {"optimise_m1_vertices": False}),
     ("+ M1 vertices (cotangent Laplacian)", {"optimise_m1_vertices": True}),
     ("paper without multi-view + M1 vertices", {"use_prior": False, "optimise_m1_vertices": True}),
+    ("+ M0 vertices (cotangent Laplacian)", {"optimise_m0_vertices": True}),
+    ("paper without multi-view + M0 vertices", {"use_prior": False, "optimise_m0_vertices": True}),
+    ("+ M0 and M1 vertices", {"optimise_m0_vertices": True, "optimise_m1_vertices": True}),
 ]
 
 
@@ -185,6 +188,22 @@ def _loader(ws, over: dict, m1_noise: float = 0.0):
     return ctx, loader
 
 
+def true_depth(scene: Path, name: str, camera) -> np.ndarray:
+    """The GT z-depth of view `name` (what --depth-noise perturbs) at `camera`'s size."""
+    import cv2
+    d = np.load(Path(scene) / "gt" / "geom" / f"{Path(name).stem}.npz")["depth"].astype(np.float64)
+    if d.shape != (camera.height, camera.width):
+        d = cv2.resize(d, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+    return d
+
+
+def depth_error(D, offset, true, mask) -> float:
+    """Mean |D (1 + offset) / true - 1| over the mask's pixels where both depths exist."""
+    D = D * (1 + (0.0 if offset is None else offset))
+    k = mask & (true > 0) & (D > 0)
+    return float(np.mean(np.abs(D[k] / true[k] - 1))) if k.any() else 0.0
+
+
 def _forget_passes(loader) -> None:
     loader.first.clear()
 
@@ -197,7 +216,8 @@ def _psnr(a, b) -> float:
 def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> list[dict]:
     """PSNR of I0 and beta*I1 vs the GT layers inside each (non-mirror) reflector's mask, median
     over the views, for each configuration row (`ABLATION`). Mirrors are exact in every row.
-    Also M1's depth error in the mask (mean |D1 (1 + delta) / D1_true - 1|, median over views)."""
+    Also M1's and M0's depth errors in the mask (mean |D (1 + delta) / D_true - 1|, median over
+    views; M0's truth is the GT depth, which --depth-noise perturbs)."""
     from ..config import build_config
     from ..stages.reflection import ReflectionConfig, _decompose_reflector, options
     _, loader = _loader(ws, base, m1_noise)
@@ -215,7 +235,7 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
                     continue
                 info = _decompose_reflector(loader, v, refl, opts, cfg)
                 d = per.setdefault(refl["name"], {"I0": [], "betaI1": [], "discarded": 0,
-                                                  "warp": [], "m1": []})
+                                                  "warp": [], "m1": [], "m0": []})
                 for h in info.get("history", []):  # Eq. 5 energy after / before the GN warp
                     for e in (h.get("warp_energy") or {}).values():
                         if e and e[0] > 0:
@@ -228,11 +248,10 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
                     continue
                 I, R = info["geom"].image, info["R"]
                 g = info["geom"]
-                D1 = g.D1 * (1 + (info.get("m1_offset") if info.get("m1_offset") is not None
-                                  else 0.0))
-                true = loader.m1_true[(v, refl["name"])]
-                k = info["mask"] & (true > 0) & (g.D1 > 0)
-                d["m1"].append(float(np.mean(np.abs(D1[k] / true[k] - 1))) if k.any() else 0.0)
+                d["m1"].append(depth_error(g.D1, info.get("m1_offset"),
+                                           loader.m1_true[(v, refl["name"])], info["mask"]))
+                d["m0"].append(depth_error(g.depth, info.get("m0_offset"),
+                                           true_depth(scene, v, g.camera), info["mask"]))
                 d["I0"].append(_psnr((I - R)[m], g0[m]))
                 d["betaI1"].append(_psnr(R[m], (gb[..., None] * g1)[m]))
         row = {"row": label, "config": over, "seconds": time.perf_counter() - t0,
@@ -243,6 +262,7 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
                          "I0_per_view": [round(x, 2) for x in d["I0"]], "views": len(d["I0"]),
                          "warp_energy_ratio": float(np.median(d["warp"])) if d["warp"] else None,
                          "m1_depth_error": float(np.median(d["m1"])) if d["m1"] else None,
+                         "m0_depth_error": float(np.median(d["m0"])) if d["m0"] else None,
                          "discarded": d["discarded"]}
         out.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "config"}), flush=True)
@@ -277,22 +297,33 @@ def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
     return tg.image[sel][ok], lay, sample_bilinear(kg.image, a), extra, float(ok.mean())
 
 
-def rerender_own_m1(tg, kg, R_k, m1_offset, tol: float = 0.05):
-    """As `rerender`'s layered prediction, but the reflection layer is sampled where k's OWN M1
-    (optionally with its optimised relative depth offsets, m1_vertices.py) is seen through t's
-    pixels: b = project_k(X1_t) + J (eps + delta_k(b)), the first-order intersection of t's ray
-    with k's M1 (what rendering M1.ply of k at t gives). Returns (target, layered) or None."""
+def _through_own(kg, X, centre, D, pos, offset):
+    """Where k's own mesh of depth D (optionally offset, geometry_step.py) is seen along the rays
+    centre -> X: pos + J (eps + delta(pos)), the first-order ray-surface intersection."""
     from ..geometry.decompose import sample_bilinear
-    from ..geometry.m1_vertices import shift_jacobian
+    from ..geometry.geometry_step import shift_jacobian
+    J, eps = shift_jacobian(kg.camera, X, X - centre, np.where(kg.mask, D, 0.0))
+    dlt = 0.0 if offset is None else sample_bilinear(np.asarray(offset)[..., None], pos)[:, 0]
+    return pos + J * (eps + dlt)[:, None]
+
+
+def rerender_own(tg, kg, R_k, m1_offset=None, tol: float = 0.05, m0_offset=None,
+                 own_m0: bool = False):
+    """As `rerender`'s layered prediction, but the reflection layer is sampled where k's OWN M1
+    (optionally with its optimised relative depth offsets) is seen through t's pixels (what
+    rendering M1.ply of k at t gives) and, with `own_m0`, the surface layer where k's own M0
+    (optionally offset: M0.ply) is seen, instead of t's surface points. Returns (target,
+    layered) or None."""
+    from ..geometry.decompose import sample_bilinear
     sel, a, b, ok = _visible_in_k(tg, kg, tol)
     if ok.sum() < 50:
         return None
-    X = tg.X1[sel][ok]
-    J, eps = shift_jacobian(kg.camera, X, X - tg.camera.center, np.where(kg.mask, kg.D1, 0.0))
-    b = b[ok]
-    dlt = 0.0 if m1_offset is None else sample_bilinear(np.asarray(m1_offset)[..., None], b)[:, 0]
-    b = b + J * (eps + dlt)[:, None]
-    lay = sample_bilinear(kg.image - R_k, a[ok]) + sample_bilinear(R_k, b)
+    c = tg.camera.center
+    b = _through_own(kg, tg.X1[sel][ok], c, kg.D1, b[ok], m1_offset)
+    a = a[ok]
+    if own_m0:
+        a = _through_own(kg, tg.X0[sel][ok], c, kg.depth, a, m0_offset)
+    lay = sample_bilinear(kg.image - R_k, a) + sample_bilinear(R_k, b)
     return tg.image[sel][ok], lay
 
 
@@ -337,12 +368,17 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                 d["pairs"].append({"heldout": t, "from": k, "pixels": len(tgt), "coverage": cover,
                                    "layers": _psnr(lay, tgt), "unsplit": _psnr(uns, tgt),
                                    "gt_layers": _psnr(gtl, tgt)})
-                if info.get("m1_offset") is not None:  # k's own M1, before / after its offsets
-                    for key, off in (("layers_own_m1", None), ("layers_own_m1_opt",
-                                                               info["m1_offset"])):
-                        own = rerender_own_m1(tg, kg, info["R"], off, opts.visibility_tol)
-                        if own is not None:
-                            d["pairs"][-1][key] = _psnr(own[1], own[0])
+                m0o, m1o = info.get("m0_offset"), info.get("m1_offset")
+                own = []  # k's own M1 (and M0), before / after their offsets
+                if m1o is not None:
+                    own += [("layers_own_m1", None, None, False),
+                            ("layers_own_m1_opt", m1o, None, False)]
+                if m0o is not None:
+                    own += [("layers_own", None, None, True), ("layers_own_opt", m1o, m0o, True)]
+                for key, o1, o0, m0 in own:
+                    got = rerender_own(tg, kg, info["R"], o1, opts.visibility_tol, o0, m0)
+                    if got is not None:
+                        d["pairs"][-1][key] = _psnr(got[1], got[0])
                 d["se"] += [((x - tgt) ** 2).mean(1).sum() for x in (lay, uns, gtl)]
                 d["n"] += len(tgt)
     loader.names = names
@@ -357,7 +393,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                      "median_gt_layers_psnr": float(np.median([p["gt_layers"] for p in ps])),
                      "pooled_layers_psnr": pooled[0], "pooled_unsplit_psnr": pooled[1],
                      "pooled_gt_layers_psnr": pooled[2], "per_pair": ps}
-        for key in ("layers_own_m1", "layers_own_m1_opt"):
+        for key in ("layers_own_m1", "layers_own_m1_opt", "layers_own", "layers_own_opt"):
             v = [p[key] for p in ps if key in p]
             if v:
                 out[name]["median_" + key + "_psnr"] = float(np.median(v))
@@ -413,10 +449,11 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", help="ablation rows to run: comma-separated indices into ABLATION")
     ap.add_argument("--heldout-neighbours", type=int, default=2)
     ap.add_argument("--depth-noise", type=float, default=0.0,
-                    help="smooth relative depth error of the GT workspace (MVS-like), e.g. 0.01")
+                    help="smooth relative depth error of the GT workspace (MVS-like), e.g. 0.01 "
+                         "(M0's source: what M0's vertex optimisation fixes)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="reflection config override for --ablation / --heldout / --timing "
-                         "(repeatable; VALUE parsed as JSON, e.g. optimise_m1_vertices=false)")
+                         "(repeatable; VALUE parsed as JSON, e.g. optimise_m0_vertices=true)")
     ap.add_argument("--m1-noise", type=float, default=0.0,
                     help="--ablation / --heldout: smooth relative error of every view's M1 depth "
                          "(mirror-world points), e.g. 0.02 (what M1's vertex optimisation fixes)")

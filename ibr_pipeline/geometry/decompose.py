@@ -13,9 +13,10 @@ q comes from a_q = project_k(X0_k'(q)) and the reflection layer from b_q = proje
 the inverse flows w^-1 obtained by "rendering" M0 / M1 at k' (exact for planar reflectors, since
 M1 is the mirrored scene). Sampling is bilinear; as a sparse interpolation matrix it makes E_d
 linear in the images, so for fixed geometry Eq. 7 is a sparse linear least-squares problem in R
-(image step: normal equations, block Jacobi-PCG, active set for the box). The rigid transform
-(R, T) of M1 is refined by Levenberg-Marquardt on the data residuals (geometry step). numpy /
-scipy only (no torch: its import alone cost seconds per worker).
+(image step: normal equations, block Jacobi-PCG, active set for the box). The geometry step
+(geometry_step.py) refines the rigid transform (R, T) of M1 and, optionally, per-vertex depth
+offsets of M0 and M1 (Eq. 7's mesh variables, Eq. 9's cotangent Laplacian). numpy / scipy only
+(no torch: its import alone cost seconds per worker).
 """
 from __future__ import annotations
 
@@ -77,8 +78,10 @@ class DecomposeOptions:
     resolve_iterations: int = 50  # CG iterations of each warm-started active-set re-solve
     pose_samples: int = 20000  # data points used by the (R, T) LM steps (deterministic stride)
     lambda_scene: float = 0.5  # weight of the reflected-scene colour prior (reflection_prior.py)
-    # M1 vertices (Eq. 7 variables M^1, Eq. 9 mesh part; m1_vertices.py): relative depth offsets
+    # M0 / M1 vertices (Eq. 7 variables M^0,1, Eq. 9 mesh part; geometry_step.py): relative
+    # depth offsets of a control grid; the m1_* settings below serve both layers
     optimise_m1_vertices: bool = False
+    optimise_m0_vertices: bool = False
     lambda_lap: float = 0.04  # weight of E_lap = delta^T L_cot delta (paper: lambda_s = 0.04)
     m1_cell: int = 16  # control-mesh spacing (working pixels)
     m1_iterations: int = 5  # LM iterations per vertex step
@@ -195,6 +198,7 @@ class DataTerm:
     a: np.ndarray  # (N, 2)
     b: np.ndarray  # (N, 2)
     X1: np.ndarray  # (N, 3) mirror-world points of q (for the (R, T) step)
+    X0: np.ndarray | None = None  # (N, 3) surface points of q (M0's vertex offsets)
 
 
 def build_data_terms(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions) -> list[DataTerm]:
@@ -210,7 +214,7 @@ def build_data_terms(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions)
         ok &= _nearest(mask_ok, a, False)[0]
         if ok.sum() < 10:
             continue
-        out.append(DataTerm(nb.name, nb.image[q][ok], a[ok], b[ok], nb.X1[q][ok]))
+        out.append(DataTerm(nb.name, nb.image[q][ok], a[ok], b[ok], nb.X1[q][ok], nb.X0[q][ok]))
     return out
 
 
@@ -234,7 +238,7 @@ def bilinear_matrix(pos: np.ndarray, W: int, H: int):
 
 def bilinear_cells(pos: np.ndarray, H: int, W: int):
     """The cell of each (N, 2) position (clamped to the image): x0, y0, x1, y1 and the (N, 1)
-    fractions ax, ay — shared by the sampler and its exact gradient (m1_vertices.py)."""
+    fractions ax, ay — shared by the sampler and its exact gradient (geometry_step.py)."""
     x = np.clip(pos[:, 0], 0, W - 1)
     y = np.clip(pos[:, 1], 0, H - 1)
     x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
@@ -313,7 +317,7 @@ class Problem:
         self.lambda_mv = 0.0
         self.r_max = 1.0
         self.prior = None  # (P, 3) beta * reflected-scene colour, NaN = unknown
-        self.offsets = None  # m1_vertices.M1Offsets when M1's vertices are optimised
+        self.offsets: dict = {}  # layer "a" (M0) / "b" (M1) -> geometry_step.LayerOffsets
 
     # -- helpers ---------------------------------------------------------------------------------
     def _x(self, R: np.ndarray) -> np.ndarray:
@@ -330,33 +334,39 @@ class Problem:
         w1 = np.exp(-np.abs(self.D @ x).sum(1))
         return w0, w1
 
+    def _shift(self, layer, i, sub):
+        off = self.offsets.get(layer)
+        return 0.0 if off is None else off.shift(i, sub)
+
+    def positions(self, layer, i, sub=None, offsets=True):
+        """a_q (layer "a") or b_q (layer "b") at the current geometry."""
+        if layer == "b":
+            return self.b_positions(self.pose, i, sub, offsets)
+        a = self.terms[i].a if sub is None else self.terms[i].a[sub]
+        return a + self._shift("a", i, sub) if offsets else a  # M0 offsets (geometry_step.py)
+
     def b_positions(self, pose, i, sub=None, offsets=True):
         """b_q with M1 moved by (R, T): R^T (X - c - T) + c projected into the reference (+ the
-        first-order shift of M1's vertex offsets, m1_vertices.py)."""
+        first-order shift of M1's vertex offsets, geometry_step.py)."""
         X = self.terms[i].X1 if sub is None else self.terms[i].X1[sub]
         Rm = rodrigues(pose[:3])
         Xm = (X - self.centre - pose[3:]) @ Rm + self.centre
         cam = self.ref.camera
         c = Xm @ cam.R.T + cam.t
         uv = c @ cam.K.T
-        if offsets and self.offsets is not None:
-            return uv[:, :2] / uv[:, 2:3] + self.offsets.shift(i, sub)
-        return uv[:, :2] / uv[:, 2:3]
+        return uv[:, :2] / uv[:, 2:3] + (self._shift("b", i, sub) if offsets else 0.0)
 
     def data_residual(self, R, pose):
         """E_d residuals (N, 3) for the images R and the pose of M1."""
         if not self.terms:
             return np.zeros((0, 3))
-        if not np.any(pose) and self.offsets is None:
-            x = self._x(R)
-            return self.A @ x - self.r
-        out = []
         x = self._x(R)
-        for i, t in enumerate(self.terms):
-            b = self.b_positions(pose, i)
-            Sa_R = bilinear_matrix(t.a, self.W, self.H)[:, self.flat] @ x
-            out.append(self.Sa_I[i] - Sa_R + sample_bilinear(R, b) - t.target)
-        return np.concatenate(out)
+        if not np.any(pose) and not self.offsets:
+            return self.A @ x - self.r
+        I0, Rm = self.I - self._R(x), self._R(x)  # Eq. 8: I0(a_q) + R(b_q) - I_k'(q)
+        return np.concatenate([sample_bilinear(I0, self.positions("a", i))
+                               + sample_bilinear(Rm, self.b_positions(pose, i)) - t.target
+                               for i, t in enumerate(self.terms)])
 
     def energy(self, R, pose=None, parts: bool = False):
         pose = self.pose if pose is None else pose
@@ -375,11 +385,12 @@ class Problem:
         if self.prior is not None:
             k = np.all(np.isfinite(self.prior), axis=1)[:, None]
             Ec = float(((x - np.where(k, self.prior, 0.0)) ** 2 * k).sum())
-        Elap = 0.0 if self.offsets is None else self.offsets.e_lap()  # Eq. 9 mesh part
+        Elap = {k: v.e_lap() for k, v in self.offsets.items()}  # Eq. 9 mesh part
         E = Ed + o.lambda_s * Es + o.lambda_p * Ep + self.lambda_mv * Emv + o.lambda_scene * Ec
-        E += 0.0 if self.offsets is None else self.offsets.lam * Elap
+        E += sum(self.offsets[k].lam * v for k, v in Elap.items())
         if parts:
-            return E, {"E_d": Ed, "E_s": Es, "E_p": Ep, "E_mv": Emv, "E_scene": Ec, "E_lap": Elap}
+            return E, {"E_d": Ed, "E_s": Es, "E_p": Ep, "E_mv": Emv, "E_scene": Ec,
+                       "E_lap": Elap.get("b", 0.0), "E_lap_m0": Elap.get("a", 0.0)}
         return E
 
     # -- image step ------------------------------------------------------------------------------
@@ -389,13 +400,13 @@ class Problem:
         import scipy.sparse as sp
         o = self.opts
         x0 = self._x(R0)
-        if np.any(self.pose) or self.offsets is not None:  # sampling at the current geometry
+        if np.any(self.pose) or self.offsets:  # sampling at the current geometry
             As, rs = [], []
             for i, t in enumerate(self.terms):
-                Sa = bilinear_matrix(t.a, self.W, self.H)[:, self.flat]
+                Sa = bilinear_matrix(self.positions("a", i), self.W, self.H)
                 Sb = bilinear_matrix(self.b_positions(self.pose, i), self.W, self.H)[:, self.flat]
-                As.append(Sb - Sa)
-                rs.append(t.target - self.Sa_I[i])
+                As.append(Sb - Sa[:, self.flat])
+                rs.append(t.target - Sa @ self.I.reshape(-1, 3))
             A = sp.vstack(As).tocsr()
             AtA, r = (A.T @ A).tocsr(), np.concatenate(rs)
         else:
@@ -432,68 +443,11 @@ class Problem:
         history.append({"step": "image", "energy": float(self.energy(R)), "unknowns": int(x.size)})
         return R
 
-    # -- geometry step ---------------------------------------------------------------------------
+    # -- geometry step (geometry_step.py) ------------------------------------------------------
     def pose_step(self, R: np.ndarray, history: list) -> None:
-        """Minimise E_d over the rigid transform (R, T) of M1 with the images fixed (the other
-        terms do not depend on it): Levenberg-Marquardt, accepted only if the energy drops."""
-        E0 = self.energy(R, self.pose)
-        if not self.terms or self.opts.pose_iterations <= 0:
-            history.append({"step": "pose", "energy": E0, "pose": self.pose.tolist()})
-            return
-        import cv2
-        x = self._x(R)
-        # 6 unknowns: a deterministic subset of the data points suffices for the LM steps (speed);
-        # the step is accepted on the full energy below
-        n_all = sum(len(t.target) for t in self.terms)
-        stride = max(1, -(-n_all // max(self.opts.pose_samples, 1)))
-        sub = [np.arange(0, len(t.target), stride) for t in self.terms]
-        base = np.concatenate([
-            self.Sa_I[i][s] - bilinear_matrix(t.a[s], self.W, self.H)[:, self.flat] @ x - t.target[s]
-            for i, (t, s) in enumerate(zip(self.terms, sub))]).reshape(-1)
-        R32 = R.astype(np.float32)
-        gx = np.stack([cv2.Sobel(R32[..., c], cv2.CV_32F, 1, 0, ksize=3) / 8 for c in range(3)], -1)
-        gy = np.stack([cv2.Sobel(R32[..., c], cv2.CV_32F, 0, 1, ksize=3) / 8 for c in range(3)], -1)
-
-        def bpos(p):
-            return np.concatenate([self.b_positions(p, i, sub[i]) for i in range(len(self.terms))])
-
-        def res(b):
-            return base + sample_bilinear(R, b).reshape(-1)
-
-        p = self.pose.copy()
-        b = bpos(p)
-        r = res(b)
-        e = float(r @ r)
-        lam, h = 1e-3, 1e-4
-        evals = 1
-        for _ in range(self.opts.pose_iterations):  # Gauss-Newton / LM, analytic image gradient
-            G = np.stack([sample_bilinear(gx, b), sample_bilinear(gy, b)], -1)  # (N, 3, 2)
-            J = np.empty((len(r), 6))
-            for k in range(6):
-                dp = np.zeros(6)
-                dp[k] = h
-                db = (bpos(p + dp) - b) / h  # (N, 2)
-                J[:, k] = np.einsum("ncd,nd->nc", G, db).reshape(-1)
-            JtJ, Jtr = J.T @ J, J.T @ r
-            for _try in range(4):
-                step = -np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ) + 1e-12), Jtr)
-                pn = p + step
-                bn = bpos(pn)
-                rn = res(bn)
-                evals += 1
-                en = float(rn @ rn)
-                if en < e:
-                    p, b, r, e, lam = pn, bn, rn, en, lam * 0.3
-                    break
-                lam *= 10
-            else:
-                break
-        sol_x, nfev = p, evals
-        E1 = self.energy(R, sol_x)
-        if E1 < E0:
-            self.pose = np.asarray(sol_x, np.float64)
-        history.append({"step": "pose", "energy": min(E0, E1), "pose": self.pose.tolist(),
-                        "evaluations": int(nfev)})
+        """(R, T) of M1 by Levenberg-Marquardt on E_d, accepted only if the energy drops."""
+        from .geometry_step import pose_step
+        pose_step(self, R, history)
 
 
 def aggregate(ref: ViewGeom, R: np.ndarray, nbs: list[ViewGeom], nb_R: dict[str, np.ndarray],
@@ -545,10 +499,11 @@ def decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, bet
     R = np.zeros_like(ref.image)
     R[y0:y1, x0:x1] = res["R"]
     res["R"] = R
-    if res.get("m1_offset") is not None:  # relative depth offsets of M1 (m1_vertices.py)
-        off = np.zeros(ref.mask.shape)
-        off[y0:y1, x0:x1] = res["m1_offset"]
-        res["m1_offset"] = off
+    for key in ("m0_offset", "m1_offset"):  # relative depth offsets (geometry_step.py)
+        if res.get(key) is not None:
+            off = np.zeros(ref.mask.shape)
+            off[y0:y1, x0:x1] = res[key]
+            res[key] = off
     return res
 
 
@@ -582,10 +537,11 @@ def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, be
     terms = build_data_terms(ref, nbs, opts)
     prob = Problem(ref, terms, opts)
     prob.r_max = beta
-    if opts.optimise_m1_vertices and terms:  # M1's vertices (Eq. 7, Eq. 9 mesh part)
-        from .m1_vertices import build_offsets, vertex_step
-        prob.offsets = build_offsets(ref, terms, {n.name: n.camera.center for n in nbs},
-                                     opts.m1_cell, opts.lambda_lap)
+    from .geometry_step import build_offsets, layer_depth, vertex_step
+    for layer, on in (("a", opts.optimise_m0_vertices), ("b", opts.optimise_m1_vertices)):
+        if on and terms:  # M0's / M1's vertices (Eq. 7 variables M^0,1, Eq. 9 mesh part)
+            prob.offsets[layer] = build_offsets(ref, terms, {n.name: n.camera.center for n in nbs},
+                                                opts.m1_cell, opts.lambda_lap, layer)
     if R_prior is not None:
         prob.prior = np.asarray(R_prior, np.float64).reshape(-1, 3)[prob.flat]
     if aggregate_from is not None:
@@ -598,11 +554,12 @@ def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, be
         R = prob.image_step(R, hist)
         if opts.optimise_pose and terms:
             prob.pose_step(R, hist)
-        if prob.offsets is not None:
-            vertex_step(prob, R, hist)
+        for layer in prob.offsets:  # M0 ("a") then M1 ("b")
+            vertex_step(prob, R, hist, layer)
     E, parts = prob.energy(R, parts=True)
     hist.append({"step": "end", "energy": float(E), **parts})
     return {"R": R, "history": hist, "pose": prob.pose.tolist(),
             "neighbours": [t.name for t in terms],
-            "m1_offset": None if prob.offsets is None else prob.offsets.pixel_offsets(
-                ref.mask.shape, ref.mask & (ref.D1 > 0))}
+            **{f"m{i}_offset": prob.offsets[k].pixel_offsets(ref.mask.shape,
+                                                             layer_depth(ref, k) > 0)
+               if k in prob.offsets else None for i, k in ((0, "a"), (1, "b"))}}

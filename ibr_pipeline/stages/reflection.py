@@ -85,14 +85,19 @@ class ReflectionConfig(StageConfig):
     optimise_m1_vertices: bool = param(False, "optimise M1's vertices (Eq. 7 variables M^1, with "
                                        "the cotangent-Laplacian term of Eq. 9): relative depth "
                                        "offsets of a control grid along the view's rays "
-                                       "(geometry/m1_vertices.py); off by default: no PSNR gain on "
-                                       "the bench, see docs/REFLECTION.md")
+                                       "(geometry/geometry_step.py); off by default: no PSNR gain "
+                                       "on the bench, see docs/REFLECTION.md")
+    optimise_m0_vertices: bool = param(False, "optimise M0's vertices (Eq. 7 variables M^0, same "
+                                       "offsets and Laplacian as M1's, through the a_q positions "
+                                       "of E_d); M0.ply is then written with them; off by "
+                                       "default, see docs/REFLECTION.md")
     lambda_lap: float = param(0.04, "weight of E_lap = delta^T L_cot delta (= the integral of "
-                              "|grad delta|^2 over the pixels; paper: lambda_s = 0.04 for E_s)",
+                              "|grad delta|^2 over the pixels; paper: lambda_s = 0.04 for E_s); "
+                              "M0's and M1's offsets",
                               min=0.0, max=1e6)
-    m1_cell_640: int = param(16, "M1 control-grid spacing in pixels at 640 px width (scaled with "
+    m1_cell_640: int = param(16, "M0 / M1 control-grid spacing in pixels at 640 px width (scaled with "
                              "the working width; the 40x30 warp grid's cell)", min=2, max=512)
-    m1_iterations: int = param(5, "LM iterations per M1 vertex step", min=0, max=1000)
+    m1_iterations: int = param(5, "LM iterations per M0 / M1 vertex step", min=0, max=1000)
     mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
     m1_simplify: bool = param(True, "quadric-simplify M1 like the per-view surface mesh (§4.2.3, "
                               "view_mesh's adaptive target): flat reflected walls need few "
@@ -119,6 +124,7 @@ def options(cfg: ReflectionConfig):
         image_iterations=cfg.image_iterations, cg_iterations=cfg.image_iterations, pose_iterations=cfg.pose_iterations,
         saturation=cfg.saturation, lambda_scene=cfg.lambda_scene if cfg.use_prior else 0.0,
         optimise_m1_vertices=cfg.optimise_m1_vertices, lambda_lap=cfg.lambda_lap,
+        optimise_m0_vertices=cfg.optimise_m0_vertices,
         m1_iterations=cfg.m1_iterations)
 
 
@@ -454,11 +460,12 @@ def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> di
                         R_prior=prior)
         history += [dict(h, **{"pass": 2}) for h in res["history"]]
     info.update(R=res["R"], pose=res["pose"], history=history, mask=ref.mask, geom=ref,
-                m1_offset=res.get("m1_offset"))
-    if info["m1_offset"] is not None:  # relative depth offsets of M1's vertices (Eq. 7)
-        o = np.abs(info["m1_offset"][ref.mask])
-        info["m1_offsets"] = {"mean_abs": round(float(o.mean()), 5) if o.size else 0.0,
-                              "max_abs": round(float(o.max()), 5) if o.size else 0.0}
+                m1_offset=res.get("m1_offset"), m0_offset=res.get("m0_offset"))
+    for key in ("m0_offset", "m1_offset"):  # relative depth offsets of M0's / M1's vertices
+        if info[key] is not None:
+            o = np.abs(info[key][ref.mask])
+            info[key + "s"] = {"mean_abs": round(float(o.mean()), 5) if o.size else 0.0,
+                               "max_abs": round(float(o.max()), 5) if o.size else 0.0}
     return info
 
 
@@ -472,27 +479,6 @@ def _simplify_m1(v, f, wc, cfg):
     res = simplify_adaptive(v.astype(np.float64), f, wc, None, budget, 200, cfg.m1_tol_score)
     return (res.vertices.astype(np.float32), res.faces.astype(np.int32),
             {"grid_faces": res.grid_faces, "faces": int(len(res.faces))})
-
-
-def optimised_m1(g, mask, offset, pose):
-    """M1's points and z-depth after the geometry step (Eq. 7): the vertex offsets move each point
-    along the view's ray to depth D1 (1 + offset) (m1_vertices.py), then the rigid (R, T) about
-    the centre of the initial M1 (decompose.Problem.centre). Returns (H, W, 3) and (H, W)."""
-    import numpy as np
-
-    from ..geometry.decompose import rodrigues
-    X1, D1 = g.X1.copy(), g.D1
-    sel = mask & (g.D1 > 0)
-    c = np.nanmean(X1[sel], axis=0) if sel.any() else np.zeros(3)
-    if offset is not None:
-        if np.shape(offset) != np.shape(D1):
-            raise ValueError(f"offset must be {np.shape(D1)}, got {np.shape(offset)}")
-        X1 = g.camera.center + (X1 - g.camera.center) * (1 + offset)[..., None]
-        D1 = D1 * (1 + offset)
-    pose = np.asarray(pose, np.float64)
-    if np.any(pose != 0):
-        X1 = (X1 - c) @ rodrigues(pose[:3]).T + c + pose[3:]
-    return X1, D1
 
 
 _LOADERS: dict = {}
@@ -515,6 +501,7 @@ def run(ctx: StageContext, view: str) -> None:
     import cv2
     import numpy as np
 
+    from ..geometry.geometry_step import optimised_m0, optimised_m1
     from ..geometry.planes import grid_mesh
     from ..io.images import write_image
     from ..io.mesh import Mesh, read_ply, write_ply
@@ -548,7 +535,7 @@ def run(ctx: StageContext, view: str) -> None:
         m = r["mask"]
         beta_w[m] = r["beta"]
         R_w[m] = r["R"][m]
-        X1, D1 = optimised_m1(r["geom"], m, r.get("m1_offset"), r["pose"])
+        X1, D1 = optimised_m1(r["geom"], m, r.get("m1_offset"), r["pose"])  # Eq. 7
         v, f = grid_mesh(X1, np.where(m, D1, 0.0), step=cfg.mesh_step)
         if cfg.m1_simplify and len(f):
             v, f, m1_steps = _simplify_m1(v, f, wc, cfg)
@@ -571,13 +558,20 @@ def run(ctx: StageContext, view: str) -> None:
     with ws.atomic_write(ws.view_file(view, "beta.npy")) as f:
         np.save(f, beta.astype(np.float32))
     M0 = read_ply(ws.path(ws.view_file(view, "mesh.ply")))  # M0: the refined-depth surface mesh
-    write_ply(ws.path(ws.view_file(view, "M0.ply")), Mesh(M0.vertices, M0.faces, normals=M0.normals))
+    m0_off = [r["m0_offset"] for r in results if r.get("m0_offset") is not None]
+    if m0_off:  # M0's optimised vertex offsets (Eq. 7); masks are disjoint, others are 0
+        m0v = optimised_m0(M0.vertices, wc, np.sum(m0_off, axis=0))
+        write_ply(ws.path(ws.view_file(view, "M0.ply")), Mesh(m0v, M0.faces),
+                  comment="view mesh with optimised vertex offsets")
+    else:
+        write_ply(ws.path(ws.view_file(view, "M0.ply")),
+                  Mesh(M0.vertices, M0.faces, normals=M0.normals))
     write_ply(ws.path(ws.view_file(view, "M1.ply")),
               Mesh(np.concatenate(verts), np.concatenate(faces)), comment="mirror-world geometry")
     main = max(results, key=lambda r: r["mask_pixels"])
     report["reflector"] = main["name"]
     report["reflectors"] = [{k: v for k, v in r.items() if k not in ("R", "mask", "geom",
-                                                                      "m1_offset")}
+                                                                      "m1_offset", "m0_offset")}
                             for r in results]
     ws.write_json(ws.view_file(view, "layers.json"), report)
 
