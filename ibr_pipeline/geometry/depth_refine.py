@@ -33,8 +33,10 @@ class Detection:
 
 
 def detect(depth: np.ndarray, camera: Camera, lambda_rel: float = de.LAMBDA_REL,
-           mask_side_m: float = de.MASK_SIDE_M, mask_min_half_px: int = 1) -> Detection:
-    """§4.2.1 on a z-depth image seen by `camera` (0 = no depth)."""
+           mask_side_m: float = de.MASK_SIDE_M, mask_min_half_px: int = 1,
+           with_mask: bool = True) -> Detection:
+    """§4.2.1 on a z-depth image seen by `camera` (0 = no depth); `with_mask` False: the
+    refinement mask is not computed (all False)."""
     depth = np.asarray(depth, dtype=np.float64)
     if depth.shape != (camera.height, camera.width):
         raise ValueError(f"depth shape {depth.shape} does not match camera {camera.width}x{camera.height}")
@@ -43,7 +45,8 @@ def detect(depth: np.ndarray, camera: Camera, lambda_rel: float = de.LAMBDA_REL,
     e = de.depth_edges(P, N, depth, lambda_rel)
     ep = e.pixels()
     f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
-    mask = de.refinement_mask(ep, depth, f, mask_side_m, mask_min_half_px) if ep.any() else np.zeros_like(ep)
+    mask = (de.refinement_mask(ep, depth, f, mask_side_m, mask_min_half_px) if with_mask and ep.any()
+            else np.zeros_like(ep))
     return Detection(P, N, e, ep, mask)
 
 

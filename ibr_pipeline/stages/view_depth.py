@@ -9,6 +9,7 @@ interpolation must not cross. Mathematics: geometry/{normals,depth_edges,geodesi
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,8 +124,32 @@ def _global_scene(path):
         if len(mesh.faces) == 0:
             raise InputError(f"{path}: the global mesh has no triangles")
         _SCENE_CACHE.clear()
+        _DEPTH_CACHE.clear()
         _SCENE_CACHE[key] = (mesh, build_scene(mesh.vertices, mesh.faces))
     return _SCENE_CACHE[key]
+
+
+_DEPTH_CACHE: OrderedDict = OrderedDict()  # (G key, camera) -> G's depth in that camera
+_DEPTH_CACHE_SIZE = 12   # a view's MVS sources are its neighbours in the capture order, which are
+                         # the next views' sources too: ~3 of 4 renders are reused (12 x 2.4 MB)
+
+
+def _g_depth(scene, camera):
+    """G ray cast into `camera` (render_depth), cached per worker process for the current G: a
+    view renders G into itself and into its MVS sources, and neighbouring views share sources."""
+    from ..render.raycast import render_depth
+
+    key = (id(scene), camera.width, camera.height, camera.K.tobytes(), camera.R.tobytes(),
+           camera.t.tobytes())
+    if key in _DEPTH_CACHE:
+        _DEPTH_CACHE.move_to_end(key)
+        return _DEPTH_CACHE[key]
+    d = render_depth(scene, camera)
+    d.setflags(write=False)
+    _DEPTH_CACHE[key] = d
+    while len(_DEPTH_CACHE) > _DEPTH_CACHE_SIZE:
+        _DEPTH_CACHE.popitem(last=False)
+    return d
 
 
 def run(ctx: StageContext, view: str) -> None:
@@ -146,8 +171,7 @@ def _run(ctx: StageContext, view: str) -> None:
 
     from ..errors import InputError
     from ..geometry import depth_refine as dr
-    from ..render.raycast import render_depth
-    from ..geometry.normals import normals_from_depth, world_normals
+    from ..geometry.normals import world_normals
     from ..io.images import read_image, write_image
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -168,7 +192,7 @@ def _run(ctx: StageContext, view: str) -> None:
     timings = {}
     # 1. initial depth: G ray cast into the view (Xu §4.2)
     t = time.perf_counter()
-    depth0 = render_depth(scene, cam)
+    depth0 = _g_depth(scene, cam)
     timings["render_ms"] = 1000 * (time.perf_counter() - t)
     # pixel-valued parameters of our additions (rounded-step strides, MVS edge guard and check
     # radius) were tuned at 320x240: scaled with the width so that they cover the same image
@@ -203,7 +227,7 @@ def _run(ctx: StageContext, view: str) -> None:
     if cfg.mvs and src and mask.any():
         src_imgs = [read_image(ws.path(ctx.scene.view(s).image)) for s in src]
         src_cams = [cams[s] for s in src]
-        src_depths = [render_depth(scene, c) for c in src_cams]
+        src_depths = [_g_depth(scene, c) for c in src_cams]
         half = int(np.ceil(0.5 * cfg.mask_side_m * cam.K[0, 0] / max(float(np.median(depth0[mask])), 0.1)))
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
@@ -231,8 +255,8 @@ def _run(ctx: StageContext, view: str) -> None:
     timings["interp_ms"] = 1000 * (time.perf_counter() - t)
     if not np.all(np.isfinite(depth2)):
         raise RuntimeError("refined depth has non-finite values")
-    final = dr.detect(depth2, cam, cfg.lambda_rel, cfg.mask_side_m, cfg.mask_min_half_px)
-    normal_w = world_normals(normals_from_depth(depth2, cam.K), cam).astype(np.float32)
+    final = dr.detect(depth2, cam, cfg.lambda_rel, with_mask=False)  # edges.png: Eq. 1 on the result
+    normal_w = world_normals(final.normals, cam).astype(np.float32)   # = normals_from_depth(depth2)
     vd = ws.view_dir(view)
     with ws.atomic_write(f"{vd}/depth_init.npy") as f:
         np.save(f, depth0.astype(np.float32))
