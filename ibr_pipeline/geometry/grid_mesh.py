@@ -259,7 +259,8 @@ def grid_mesh(depth: np.ndarray, camera: Camera, edges: PairEdges,
         faces, grid_used, report = quadtree_faces(depth, edges, premerge_tol)
         grid_used = np.flatnonzero(grid_used)
     else:
-        faces, report = grid_faces(depth > 0, edges), {"leaves": {}, "merged_fraction": 0.0}
+        faces = grid_faces(depth > 0, edges)
+        report = {"grid_faces": int(len(faces)), "leaves": {}, "merged_fraction": 0.0}
     used, f = reindex(depth.size, faces)
     P = points_from_depth(depth, camera.K).reshape(-1, 3)[used]
     v = (P - camera.t) @ camera.R

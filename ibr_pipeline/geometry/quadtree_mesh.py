@@ -174,5 +174,6 @@ def quadtree_faces(depth: np.ndarray, edges: PairEdges, tol_rel: float = TOL_REL
             faces.append(np.stack([centre, vid, nxt], 1))
     n_full = int(full.sum())
     return np.concatenate(faces, 0).astype(np.int64), grid_used, {
+        "grid_faces": int(len(base) + 2 * in_leaf.sum()),
         "leaves": {int(s): int(len(o)) for s, o in leaves.items()},
         "merged_fraction": float(in_leaf.sum() / n_full) if n_full else 0.0}

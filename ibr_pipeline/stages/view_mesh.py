@@ -69,7 +69,8 @@ def run(ctx: StageContext, view: str) -> None:
     write_ply(ws.path(f"{vd}/mesh.ply"), Mesh(res.vertices, res.faces), comment=f"view_mesh {view}")
     ws.write_json(f"{vd}/mesh_report.json", {
         "view": view, "edge_pixels": int((edges_png.mean(axis=2) > 0.5).sum()),
-        "grid_vertices": res.grid_vertices, "grid_faces": res.grid_faces,
+        "grid_faces": premerge["grid_faces"],
+        "input_vertices": res.grid_vertices, "input_faces": res.grid_faces,  # after the pre-merge
         "vertices": int(len(res.vertices)), "faces": int(len(res.faces)), "budget_vertices": budget,
         "premerge": premerge, "steps": res.steps, "ms": round(1000 * (time.perf_counter() - t0), 1),
         "cpu_ms": round(1000 * (time.process_time() - c0), 1)})

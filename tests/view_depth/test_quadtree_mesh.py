@@ -160,3 +160,12 @@ def test_rasteriser_equals_the_ray_cast():
     assert np.allclose(rr, gd, rtol=1e-9)                     # and exactly the grid's depth
     with pytest.raises(ValueError):
         raster_depth(v - np.array([0, 0, 10.0]), f, cam)         # behind the camera
+
+
+def test_report_counts_the_grid_faces():
+    cam, d = _scene()
+    e = _edges(cam, d)
+    g = grid_faces(d > 0, e)
+    _, fq, _, rep = grid_mesh(d, cam, e, return_depth=True, premerge_tol=3e-4)
+    _, f0, _, rep0 = grid_mesh(d, cam, e, return_depth=True)
+    assert rep["grid_faces"] == rep0["grid_faces"] == len(g) == len(f0) > len(fq)
