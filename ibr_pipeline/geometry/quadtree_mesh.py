@@ -37,12 +37,11 @@ TOL_REL = 1e-4      # max relative depth deviation of a merged block from its pl
 MAX_BLOCK = 64      # largest block side in pixel squares
 
 
-def _affine_basis(s: int) -> tuple[np.ndarray, np.ndarray]:
-    """(X (n, 3), pinv(X) (3, n)) of the least-squares affine fit w ~ c0 + c1 u + c2 v over the
-    (s+1)^2 vertices of a block (row-major)."""
+def _affine_pinv(s: int) -> np.ndarray:
+    """(3, n) pseudo-inverse of X = [1, u, v] over the (s+1)^2 vertices of a block (row-major):
+    the least-squares affine fit of values w is c = pinv @ w."""
     v, u = np.mgrid[0:s + 1, 0:s + 1]
-    X = np.stack([np.ones(u.size), u.ravel(), v.ravel()], 1).astype(np.float64)
-    return X, np.linalg.pinv(X)
+    return np.linalg.pinv(np.stack([np.ones(u.size), u.ravel(), v.ravel()], 1).astype(np.float64))
 
 
 @njit(cache=True)
@@ -93,7 +92,7 @@ def planar_leaves(depth: np.ndarray, full: np.ndarray, tol_rel: float = TOL_REL,
         cand = prev.reshape(nby, 2, nbx, 2).all(axis=(1, 3))
         if cand.any():
             iy, ix = np.nonzero(cand)
-            _, Xp = _affine_basis(s)
+            Xp = _affine_pinv(s)
             # max over the block's vertices of |1/z - affine fit| * z = |dz| / z
             rel = _block_fit_max(inv, depth, iy * s, ix * s, s, Xp)
             cand[iy, ix] = rel <= tol_rel
