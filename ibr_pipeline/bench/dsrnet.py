@@ -4,12 +4,16 @@ and speed.
     python -m ibr_pipeline.bench.dsrnet [--scene tiny|mirror_room | --folder SYNTH_DIR]
         [--steps 1200] [--time-budget 0] [--preset cpu|paper] [--device cpu|cuda|auto]
         [--no-ablation] [--sequence 12] [--repeats 5] [--out bench_dsrnet.json]
+        [--workspace WS [--model WS/nn/dsrnet.pt]] [--capture-fraction 0.5]
 
 Data: the STAND-IN low-res renderer (nn/data.py: ground truth + IBR-like artefacts), so the figures
 say what the network does with blur/misalignment/holes, not with real IBR renders. With
 `--workspace WS` (a workspace of a synthetic input after view_mesh, + reflection) the real
 leave-one-out renders of issue #7 (`render.ibr.IBRModel`) are used instead, for training,
 validation, the full-resolution baseline and the dense sequence (ground truth from the tracer).
+`--model FILE` (with `--workspace`) trains nothing: it measures a trained network, e.g. the stage's
+own `WS/nn/dsrnet.pt`, on the same held-out views (the stage's split) against the full-resolution
+render. `--capture-fraction` mixes capture pairs into training (`data.capture_pairs`, docs/DSRNET.md).
 
 Measured:
 * held-out capture views (the 10 % split, never trained on): PSNR/SSIM of DSRNet with MVR,
@@ -116,8 +120,8 @@ def flicker(outputs: list, gts: list) -> float:
 def main(argv=None) -> int:
     import torch
 
-    from ..nn.data import (StandInRenderer, low_res_camera, make_sample, render_low_res,
-                           sequence_pairs, split_views)
+    from ..nn.data import (StandInRenderer, capture_pairs, low_res_camera, make_sample,
+                           render_low_res, sequence_pairs, split_views)
     from ..nn.infer import SuperSampler
     from ..nn.model import count_parameters, preset
     from ..nn.train import TrainOptions, cpu_threads, resolve_device, torch_threads, train
@@ -128,6 +132,10 @@ def main(argv=None) -> int:
     ap.add_argument("--folder", help="a synthetic scene folder (overrides --scene)")
     ap.add_argument("--workspace", help="a workspace after view_mesh (+ reflection) of a synthetic "
                     "input: use the real leave-one-out renders of issue #7 instead of the stand-in")
+    ap.add_argument("--model", help="a trained DSRNet file (with --workspace): measure it, train "
+                    "nothing (no ablation)")
+    ap.add_argument("--capture-fraction", type=float, default=0.0,
+                    help="share of training crops from capture pairs (0 = render pairs only)")
     ap.add_argument("--preset", choices=("cpu", "paper"), default="cpu")
     ap.add_argument("--steps", type=int, default=1200)
     ap.add_argument("--time-budget", type=float, default=0.0, help="training budget, s (0 = none)")
@@ -143,6 +151,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench_dsrnet.json")
     args = ap.parse_args(argv)
+    if args.model and not args.workspace:
+        print("bench.dsrnet: --model needs --workspace", file=sys.stderr)
+        return 2
     if args.steps < 1 or args.repeats < 1 or args.sequence < 0:
         print("bench.dsrnet: --steps/--repeats must be >= 1, --sequence >= 0", file=sys.stderr)
         return 2
@@ -171,23 +182,31 @@ def main(argv=None) -> int:
     frames = render_low_res(names, cams, renderer, scale)
     train_names, val_names = split_views(names)
     gt = {n: renderer.gt_image(n) for n in names}
-    tr = [make_sample(c, p, frames, gt[c]) for c, p in sequence_pairs(train_names, train_names)]
+    tr_pairs = sequence_pairs(train_names, train_names)
+    tr = [make_sample(c, p, frames, gt[c]) for c, p in tr_pairs]
+    cap = capture_pairs(tr_pairs, frames, gt) if args.capture_fraction > 0 else []
     va = [make_sample(c, p, frames, gt[c]) for c, p in sequence_pairs(names, val_names)
           if p not in val_names]
     full_res = {n: renderer(n, cams[n])[0] for n in val_names}
     report = {"scene": str(folder), "renderer": "ibr" if args.workspace else "standin", "preset": args.preset,
               "device": str(device), "train_pairs": len(tr), "val_views": val_names,
+              "capture_pairs": len(cap), "capture_fraction": args.capture_fraction,
               "threads": cpu_threads(args.threads) if device.type == "cpu" else None,
               "data_seconds": time.perf_counter() - t0}
     opts = TrainOptions(steps=args.steps, time_budget_s=args.time_budget, batch=args.batch,
                         crop=args.crop, lr=args.lr, seed=args.seed, device=str(device),
                         threads=args.threads, checkpoint_every=max(args.steps // 6, 1),
-                        progress=False)
+                        progress=False, capture_fraction=args.capture_fraction)
     models, trainings = {}, {}
     variants = [("dsrnet", True)] + ([] if args.no_ablation else [("dsrnet_no_mvr", False)])
+    if args.model:
+        from ..nn.train import load_model
+        models["dsrnet"] = load_model(Path(args.model), device)
+        report["model"] = str(args.model)
+        variants = []
     for key, mvr in variants:
         cfg = preset(args.preset, use_mvr=mvr)
-        r = train(cfg, tr, va, opts)
+        r = train(cfg, tr, va, opts, capture_samples=cap)
         models[key] = r.model
         trainings[key] = {"steps": r.steps, "seconds": r.seconds,
                           "s_per_step": r.seconds / max(r.steps - r.resumed_from, 1),

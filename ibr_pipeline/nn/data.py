@@ -105,6 +105,33 @@ def make_sample(name: str, prev_name: str, frames: dict, target: np.ndarray) -> 
     return Sample(name, prev_name, cur, prev, flow, np.asarray(target, dtype=np.float32))
 
 
+def capture_low_res(image: np.ndarray, render: LowRes) -> LowRes:
+    """The captured full-resolution image area-downsampled to the low-resolution render's camera,
+    with the depth of that render (same camera: the leave-one-out render of the view itself).
+
+    A *capture pair* (this as input, the capture as target) teaches real super-resolution on real
+    detail: input and target differ only by the downsampling, whereas in a render pair they also
+    differ by the IBR reconstruction's error (our extension beyond §6, docs/DSRNET.md)."""
+    import cv2
+
+    h, w = render.depth.shape
+    img = np.asarray(image, np.float32)
+    if img.shape[0] % h or img.shape[1] % w:
+        raise ValueError(f"capture {img.shape} is not a multiple of the render size {(h, w)}")
+    color = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+    return LowRes(np.clip(color, 0.0, 1.0), render.depth, render.camera)
+
+
+def capture_pairs(pairs: Sequence[tuple[str, str]], frames: dict, targets: dict) -> list[Sample]:
+    """Capture-pair samples for (current, previous) view pairs: both frames are the captures
+    area-downsampled (`capture_low_res`), the target is the current capture. Only the views named
+    in `pairs` are read: pass training pairs only, so no validation view is ever trained on."""
+    low = {}
+    for n in {v for pair in pairs for v in pair}:
+        low[n] = capture_low_res(targets[n], frames[n])
+    return [make_sample(c, p, low, targets[c]) for c, p in pairs]
+
+
 # --- renderers ---------------------------------------------------------------------------------
 def _seed_of(*parts) -> int:
     return int.from_bytes(hashlib.sha256("/".join(map(str, parts)).encode()).digest()[:8], "little")

@@ -39,6 +39,9 @@ class TrainOptions:
     batch: int = 4
     crop: int = 48  # low-resolution crop side
     lr: float = 1e-3
+    # linear learning-rate warm-up: without it Adam's first sign-sized steps on every layer blew
+    # the zero-initialised residual up and the net settled at "no residual" = bicubic for good
+    warmup_steps: int = 100
     perceptual_weight: float = PERCEPTUAL_WEIGHT  # §5.2.2: w = 0.1
     l1_weight: float = 0.0  # optional L1 image term (not in Eq. of §5.2.2; Table 4 mentions L1)
     warp_weight: float = 1.0  # weight of L_warp (the paper gives none; see docs/DSRNET.md)
@@ -49,6 +52,9 @@ class TrainOptions:
     threads: int = 0  # torch CPU threads; 0 = auto (see `cpu_threads`)
     flip: bool = True
     progress: bool = True
+    # share of the crops taken from capture pairs (data.capture_pairs) instead of render pairs;
+    # our extension beyond the paper (docs/DSRNET.md); used only when capture samples are given
+    capture_fraction: float = 0.0
 
 
 @dataclass
@@ -100,10 +106,16 @@ def torch_threads(n: int):
         torch.set_num_threads(old)
 
 
-def _batch(samples: Sequence[Sample], opts: TrainOptions, step: int, device) -> dict:
+def _batch(samples: Sequence[Sample], opts: TrainOptions, step: int, device,
+           capture: Sequence[Sample] = ()) -> dict:
     rng = np.random.default_rng([opts.seed, step])
     idx = rng.integers(0, len(samples), size=opts.batch)
-    b = to_tensors([samples[i] for i in idx], crop=opts.crop, rng=rng, flip=opts.flip)
+    chosen = [samples[i] for i in idx]
+    if capture and opts.capture_fraction > 0:  # each crop: a capture pair with that probability
+        use = rng.random(opts.batch) < opts.capture_fraction
+        cidx = rng.integers(0, len(capture), size=opts.batch)
+        chosen = [capture[j] if u else s for s, u, j in zip(chosen, use, cidx)]
+    b = to_tensors(chosen, crop=opts.crop, rng=rng, flip=opts.flip)
     return {k: v.to(device).contiguous(memory_format=torch.channels_last) for k, v in b.items()}
 
 
@@ -122,24 +134,29 @@ def total_loss(model: DSRNet, features, b: dict, opts: TrainOptions) -> tuple:
 
 
 @torch.no_grad()
-def evaluate(model: DSRNet, samples: Sequence[Sample], device) -> dict:
-    """Mean PSNR/SSIM (ibr_pipeline.metrics) of DSRNet, bilinear and bicubic upsampling."""
+def evaluate(model: DSRNet, samples: Sequence[Sample], device, baselines: bool = True,
+             ssim: bool = True) -> dict:
+    """Mean PSNR/SSIM (ibr_pipeline.metrics) of DSRNet, bilinear and bicubic upsampling.
+    `baselines=False`: DSRNet only; `ssim=False`: PSNR only (the cheap validation of the loop)."""
     from .. import metrics
     from .infer import upsample
 
     if not samples:
         return {}
     model.eval()
-    acc = {k: [] for k in ("psnr", "ssim", "psnr_bilinear", "ssim_bilinear", "psnr_bicubic",
-                           "ssim_bicubic")}
+    acc: dict = {}
     for s in samples:
         b = {k: v.to(device) for k, v in to_tensors([s]).items()}
         y = _forward(model, b)["image"].clamp(0, 1)[0].permute(1, 2, 0).cpu().numpy()
         f = s.target.shape[0] // s.cur.color.shape[0]
-        for suffix, img in (("", y), ("_bilinear", upsample(s.cur.color, f, "bilinear")),
-                            ("_bicubic", upsample(s.cur.color, f, "bicubic"))):
-            acc["psnr" + suffix].append(metrics.psnr(s.target, img))
-            acc["ssim" + suffix].append(metrics.ssim(s.target, img))
+        cands = [("", y)]
+        if baselines:
+            cands += [("_bilinear", upsample(s.cur.color, f, "bilinear")),
+                      ("_bicubic", upsample(s.cur.color, f, "bicubic"))]
+        for suffix, img in cands:
+            acc.setdefault("psnr" + suffix, []).append(metrics.psnr(s.target, img))
+            if ssim:
+                acc.setdefault("ssim" + suffix, []).append(metrics.ssim(s.target, img))
     model.train()
     return {k: float(np.mean(v)) for k, v in acc.items()}
 
@@ -175,13 +192,18 @@ def _save_checkpoint(path: Path, model, optim, step: int, history: dict, fingerp
 
 
 def _lr_at(opts: TrainOptions, step: int) -> float:
-    return opts.lr * 0.5 * (1 + math.cos(math.pi * min(step / max(opts.steps, 1), 1.0)))  # cosine
+    """Linear warm-up over `warmup_steps`, then cosine decay to 0 at `steps`."""
+    warm = min(1.0, (step + 1) / opts.warmup_steps) if opts.warmup_steps > 0 else 1.0
+    return warm * opts.lr * 0.5 * (1 + math.cos(math.pi * min(step / max(opts.steps, 1), 1.0)))
 
 
 def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Sequence[Sample],
-          opts: TrainOptions, checkpoint: Path | None = None, fingerprint: str = "") -> TrainResult:
+          opts: TrainOptions, checkpoint: Path | None = None, fingerprint: str = "",
+          capture_samples: Sequence[Sample] = ()) -> TrainResult:
     """Train a DSRNet; resumes from `checkpoint` when it exists with the same `fingerprint`
-    (the data's, given by the caller) and the same options (those that change the result)."""
+    (the data's, given by the caller) and the same options (those that change the result).
+    `capture_samples` (data.capture_pairs of training views only) are mixed into the batches with
+    probability `opts.capture_fraction` per crop."""
     if not train_samples:
         raise ValueError("train: no training samples")
     device = resolve_device(opts.device)
@@ -207,24 +229,28 @@ def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Se
             log.info("supersample: resuming training at step %d from %s", start, checkpoint)
     with torch_threads(cpu_threads(opts.threads)):
         return _loop(model, features, optim, train_samples, val_samples, opts, checkpoint,
-                     fingerprint, history, start, device)
+                     fingerprint, history, start, device, capture_samples)
 
 
 def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, fingerprint,
-          history, start, device) -> TrainResult:
+          history, start, device, capture_samples=()) -> TrainResult:
     from tqdm import tqdm
 
     t0 = time.perf_counter()
     step, stopped = start, False
     bar = tqdm(total=opts.steps, initial=start, desc="supersample: training DSRNet", unit="step",
                disable=not opts.progress, leave=False)
+    # validation (PSNR only; the baselines once) about 8 times a run, at checkpoint steps: at
+    # 640x480 a full validation of 24 pairs took longer than the 100 training steps between two
+    val_every = opts.checkpoint_every * max(1, math.ceil(opts.steps / 8 / opts.checkpoint_every))
+    bilinear = None
     while step < opts.steps:
         if opts.time_budget_s > 0 and time.perf_counter() - t0 > opts.time_budget_s:
             stopped = True
             break
         for g in optim.param_groups:
             g["lr"] = _lr_at(opts, step)
-        b = _batch(train_samples, opts, step, device)
+        b = _batch(train_samples, opts, step, device, capture_samples)
         loss, li, lw = total_loss(model, features, b, opts)
         optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -237,11 +263,12 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
         bar.update(1)
         bar.set_postfix(loss=f"{history['loss'][-1]:.4f}")
         if step % opts.checkpoint_every == 0 or step == opts.steps:
-            if val_samples:
-                ev = evaluate(model, val_samples, device)
+            if val_samples and (step % val_every == 0 or step == opts.steps):
+                ev = evaluate(model, val_samples, device, baselines=bilinear is None, ssim=False)
+                bilinear = ev.get("psnr_bilinear", bilinear)
                 history["val_step"].append(step)
                 history["val_psnr"].append(ev["psnr"])
-                history["val_psnr_bilinear"].append(ev["psnr_bilinear"])
+                history["val_psnr_bilinear"].append(bilinear)
             if checkpoint is not None:
                 _save_checkpoint(checkpoint, model, optim, step, history, fingerprint)
     bar.close()

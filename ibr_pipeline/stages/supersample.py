@@ -45,6 +45,9 @@ class SupersampleConfig(StageConfig):
     batch: int = param(4, "crops per step", min=1, max=256)
     crop: int = param(48, "crop side in low-resolution pixels", min=8, max=1024)
     lr: float = param(1e-3, "Adam learning rate", min=1e-7, max=1.0)
+    warmup_steps: int = param(100, "linear learning-rate warm-up before the cosine decay (without "
+                              "it the net stayed at bicubic quality on real renders)",
+                              min=0, max=1_000_000)
     perceptual_weight: float = param(0.1, "w of the filter/VGG term (§5.2.2: w = 0.1)",
                                      min=0.0, max=100.0)
     l1_weight: float = param(0.0, "optional L1 image term (not in §5.2.2's equation; Table 4 "
@@ -53,6 +56,11 @@ class SupersampleConfig(StageConfig):
                                min=0.0, max=100.0)
     vgg_weights: str = param("", "path of a VGG-16 features state dict for the perceptual loss "
                              "(none can be downloaded here); empty = fixed filter bank")
+    capture_fraction: float = param(0.0, "share of training crops from capture pairs (the "
+                                    "captured image area-downsampled, with its render's depth) "
+                                    "instead of render pairs; our extension beyond §6, measured "
+                                    "no gain (docs/DSRNET.md); 0 = render pairs only (§6)",
+                                    min=0.0, max=1.0)
     val_fraction: float = param(0.1, "share of capture views held out for validation (§6: 0.1)",
                                 min=0.05, max=0.5)
     seed: int = param(0, "seed of the weights and the crops (training is deterministic)",
@@ -107,8 +115,8 @@ def run(ctx: StageContext) -> None:
     import numpy as np
 
     from ..io.images import read_image
-    from ..nn.data import (IBRRenderer, StandInRenderer, make_sample, render_low_res,
-                           sequence_pairs, split_views)
+    from ..nn.data import (IBRRenderer, StandInRenderer, capture_pairs, make_sample,
+                           render_low_res, sequence_pairs, split_views)
     from ..nn.model import count_parameters, preset
     from ..nn.train import (TrainOptions, cpu_threads, evaluate, plot_losses, save_model,
                             train)
@@ -157,8 +165,10 @@ def run(ctx: StageContext) -> None:
                              f"{img.shape[1]}x{img.shape[0]}, its camera "
                              f"{cams[n].width}x{cams[n].height}")
         targets[n] = img
-    train_samples = [make_sample(c, p, frames, targets[c])
-                     for c, p in sequence_pairs(train_names, train_names)]
+    train_pairs = sequence_pairs(train_names, train_names)
+    train_samples = [make_sample(c, p, frames, targets[c]) for c, p in train_pairs]
+    # capture pairs of the training views only (never a validation view, not even as previous)
+    capture_samples = capture_pairs(train_pairs, frames, targets) if cfg.capture_fraction > 0 else []
     val_samples = [make_sample(c, p, frames, targets[c]) for c, p in sequence_pairs(names, val_names)
                    if p not in val_names]
 
@@ -168,12 +178,13 @@ def run(ctx: StageContext) -> None:
     if cfg.time_budget_s > 0:
         budget = max(1e-3, cfg.time_budget_s - (time.perf_counter() - t_start) - reserve)
     opts = TrainOptions(steps=cfg.steps, time_budget_s=budget, batch=cfg.batch, crop=cfg.crop,
-                        lr=cfg.lr, perceptual_weight=cfg.perceptual_weight,
+                        lr=cfg.lr, warmup_steps=cfg.warmup_steps, perceptual_weight=cfg.perceptual_weight,
                         warp_weight=cfg.warp_weight, l1_weight=cfg.l1_weight,
                         vgg_weights=str(ws.path(cfg.vgg_weights)) if cfg.vgg_weights else "",
                         seed=cfg.seed, checkpoint_every=cfg.checkpoint_every, device=cfg.device, threads=cfg.threads,
-                        progress=cfg.progress)
-    result = train(model_cfg, train_samples, val_samples, opts, ws.path(CHECKPOINT), digest)
+                        progress=cfg.progress, capture_fraction=cfg.capture_fraction)
+    result = train(model_cfg, train_samples, val_samples, opts, ws.path(CHECKPOINT), digest,
+                   capture_samples=capture_samples)
     device = next(result.model.parameters()).device
     val = evaluate(result.model, val_samples, device)
     save_model(ws.path(MODEL), result.model, {"trained_steps": result.steps})
@@ -183,7 +194,8 @@ def run(ctx: StageContext) -> None:
         "preset": cfg.preset, "model": model_cfg.to_dict(),
         "parameters": count_parameters(result.model), "renderer": cfg.renderer,
         "train_views": train_names, "val_views": val_names,
-        "train_pairs": len(train_samples), "val_pairs": len(val_samples),
+        "train_pairs": len(train_samples), "capture_pairs": len(capture_samples),
+        "capture_fraction": cfg.capture_fraction, "val_pairs": len(val_samples),
         "steps": result.steps, "steps_planned": cfg.steps, "resumed_from_step": result.resumed_from,
         "stopped_by_time_budget": result.stopped_by_budget,
         "seconds": {"render": render_s, "train": result.seconds,
@@ -206,5 +218,5 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="supersample", help="train DSRNet (Xu §5.2) on leave-one-out renders",
-              config=SupersampleConfig, version="1", run=run, inputs=inputs,
+              config=SupersampleConfig, version="2", run=run, inputs=inputs,
               outputs=(MODEL, TRAIN_JSON, LOSS_PNG))

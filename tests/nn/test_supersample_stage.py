@@ -91,3 +91,12 @@ def test_help_lists_the_config():
     with pytest.raises(SystemExit) as e:
         main(["supersample", "--help"])
     assert e.value.code == 0
+
+
+def test_stage_mixes_capture_pairs_of_training_views_only(ws):
+    assert main(["supersample", str(ws), "--capture-fraction", "0.5", "--warmup-steps", "2"]
+                + FAST) == 0
+    rep = json.loads((ws / "nn" / "train.json").read_text())
+    assert rep["capture_fraction"] == 0.5 and rep["capture_pairs"] == rep["train_pairs"] > 0
+    assert rep["val_views"] and not set(rep["val_views"]) & set(rep["train_views"])
+    assert rep["validation"]["psnr"] > 15
