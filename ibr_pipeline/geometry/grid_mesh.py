@@ -28,18 +28,28 @@ def grid_faces(valid: np.ndarray, edges: PairEdges, cells: np.ndarray | None = N
     """(F, 3) int64 faces over the pixel grid (vertex index = y * W + x), two per pixel square,
     none with a side across a depth edge or a corner without depth. Counter-clockwise as seen by
     the camera (OpenCV: image y down). `cells`: optional (H-1, W-1) bool, only those squares."""
-    (a, b, c, d), masks = _cell_triangles(valid, edges)
-    if cells is not None:
-        masks = [m & cells for m in masks]
-    tris = ((a, c, b), (b, c, d), (a, c, d), (a, d, b))
-    faces = [np.stack([t[m] for t in tri], 1) for m, tri in zip(masks, tris)]
-    return np.concatenate(faces, 0).astype(np.int64)
+    return CellTriangles(valid, edges).faces(cells)
 
 
-def full_cells(valid: np.ndarray, edges: PairEdges) -> np.ndarray:
-    """(H-1, W-1) bool: pixel squares that get both of their triangles (no cut, all depths)."""
-    _, (t1, t2, t3, t4) = _cell_triangles(valid, edges)
-    return (t1 & t2) | (t3 & t4)
+class CellTriangles:
+    """The pixel squares' corner indices (a, b, c, d) and the masks of their four possible
+    triangles (a, c, b), (b, c, d) [split along b-c] and (a, c, d), (a, d, b) [split along a-d];
+    computed once for grid_faces, full_cells and the quadtree pre-merge."""
+
+    def __init__(self, valid: np.ndarray, edges: PairEdges):
+        self.corners, self.masks = _cell_triangles(valid, edges)
+
+    def faces(self, cells: np.ndarray | None = None) -> np.ndarray:
+        a, b, c, d = self.corners
+        masks = self.masks if cells is None else [m & cells for m in self.masks]
+        tris = ((a, c, b), (b, c, d), (a, c, d), (a, d, b))
+        faces = [np.stack([t[m] for t in tri], 1) for m, tri in zip(masks, tris)]
+        return np.concatenate(faces, 0).astype(np.int64)
+
+    def full(self) -> np.ndarray:
+        """(H-1, W-1) bool: pixel squares that get both of their triangles (no cut, all depths)."""
+        t1, t2, t3, t4 = self.masks
+        return (t1 & t2) | (t3 & t4)
 
 
 def _cell_triangles(valid: np.ndarray, edges: PairEdges):
@@ -129,10 +139,11 @@ class DepthRenderer:
         if len(faces) == 0:
             return np.zeros((cam.height, cam.width))
         if self.method == "auto":
-            from .rasterize import in_front, project_mesh, raster_depth
+            from .rasterize import try_raster_depth
 
-            if in_front(project_mesh(vertices, cam)[1]):
-                return raster_depth(vertices, faces, cam)
+            out = try_raster_depth(vertices, faces, cam)
+            if out is not None:
+                return out
         if self._rays is None:
             self._build_rays()
         scene = raycast.build_scene(vertices, faces)

@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit
 
 from .depth_edges import PairEdges
-from .grid_mesh import full_cells, grid_faces
+from .grid_mesh import CellTriangles
 
 TOL_REL = 1e-4      # max relative depth deviation of a merged block from its plane (0.2 mm at 2 m)
 MAX_BLOCK = 64      # largest block side in pixel squares
@@ -128,7 +128,8 @@ def quadtree_faces(depth: np.ndarray, edges: PairEdges, tol_rel: float = TOL_REL
     depth = np.asarray(depth, np.float64)
     h, w = depth.shape
     valid = depth > 0
-    full = full_cells(valid, edges)
+    cells = CellTriangles(valid, edges)
+    full = cells.full()
     leaves = planar_leaves(depth, full, tol_rel, max_block)
     in_leaf = np.zeros((h - 1, w - 1), bool)
     for s, org in leaves.items():
@@ -136,7 +137,7 @@ def quadtree_faces(depth: np.ndarray, edges: PairEdges, tol_rel: float = TOL_REL
         m[org[:, 0] // s, org[:, 1] // s] = True
         up = np.repeat(np.repeat(m, s, 0), s, 1)
         in_leaf[:up.shape[0], :up.shape[1]] |= up
-    base = grid_faces(valid, edges, cells=~in_leaf)
+    base = cells.faces(~in_leaf)
     active = np.zeros(h * w, bool)
     active[base.reshape(-1)] = True
     grid_used = active.copy()            # + every vertex of a leaf (all full squares)

@@ -13,7 +13,7 @@ Both faces of a triangle are drawn (no culling), as ray casting does.
 
 Why not a library: open3d ray casting (above); moderngl/EGL would need a GL context per worker
 process, and the runner fans views out over processes and Dask workers; the kernel is ~40 lines.
-Triangles with a vertex at or behind the camera plane are not drawn (callers check `in_front`).
+A mesh with a vertex at or behind the camera plane is not drawn (try_raster_depth says None).
 """
 from __future__ import annotations
 
@@ -61,27 +61,25 @@ def _raster(uv, z, faces, h, w, out):
                             out[y, x] = d
 
 
-def project_mesh(vertices: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """(uv (V, 2), z (V,)) of world-space vertices."""
-    return camera.project(np.asarray(vertices, np.float64))
-
-
-def in_front(z: np.ndarray) -> bool:
-    """Whether every vertex is in front of the camera (then `raster_depth` equals a ray cast)."""
-    return bool(len(z) == 0 or np.min(z) > 1e-9)
-
-
-def raster_depth(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray:
-    """(H, W) z-depth of a world-space mesh at the pixel centres (0 = not covered); every vertex
-    must be in front of the camera."""
+def try_raster_depth(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray | None:
+    """(H, W) z-depth of a world-space mesh at the pixel centres (0 = not covered), or None when a
+    vertex is at or behind the camera plane (then only a ray cast is right)."""
     vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"expected (V, 3) vertices and (F, 3) faces, got {vertices.shape}, {faces.shape}")
-    uv, z = project_mesh(vertices, camera)
-    if not in_front(z):
-        raise ValueError("raster_depth: a vertex is at or behind the camera plane (use a ray cast)")
+    uv, z = camera.project(vertices)
+    if len(z) and not np.min(z) > 1e-9:
+        return None
     out = np.full((camera.height, camera.width), np.inf)
     if len(faces):
         _raster(uv, z, faces.astype(np.int64), camera.height, camera.width, out)
     out[~np.isfinite(out)] = 0.0
+    return out
+
+
+def raster_depth(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray:
+    """try_raster_depth for a mesh that must be wholly in front of the camera."""
+    out = try_raster_depth(vertices, faces, camera)
+    if out is None:
+        raise ValueError("raster_depth: a vertex is at or behind the camera plane (use a ray cast)")
     return out

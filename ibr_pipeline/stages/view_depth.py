@@ -245,10 +245,7 @@ def _run(ctx: StageContext, view: str) -> None:
     region = mask & ~accepted
     barrier = strokes
     if cfg.edge_barrier:  # G's own occlusion edges as automatic strokes (see the config help)
-        from ..geometry.depth_edges import depth_edges
-        from ..geometry.normals import normals_from_points, points_from_depth
-        P1 = points_from_depth(depth1, cam.K)
-        e = depth_edges(P1, normals_from_points(P1, depth1 > 0), depth1, cfg.lambda_rel).pixels()
+        e = dr.detect(depth1, cam, cfg.lambda_rel, with_mask=False).edge_pixels
         barrier = e if strokes is None else (strokes | e)
     depth2, filled, _ = dr.refine(depth1, cam, image, region, barrier, cfg.cost_base, cfg.cost_edge,
                                   cfg.neighbours)
