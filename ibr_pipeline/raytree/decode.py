@@ -246,11 +246,16 @@ def decode(tree: RayTree, device: str | torch.device = "cpu", options: DecodeOpt
         dirs[i][crop] = r
     ops.sync(dev)
     t3 = time.perf_counter()
+    record_decode_timings(timings, tic, t1, t2, t3)
+    return Decoded(tree, dev, K, T, center, rgb, depth, valid, pos, normal, dirs, ior, fres, box)
+
+
+def record_decode_timings(timings: dict | None, tic: float, t1: float, t2: float, t3: float) -> None:
+    """Table 1's three decode rows from the stage boundaries (both backends)."""
     if timings is not None:
         timings["decode_diffuse"] = t1 - tic
         timings["decode_normal"] = t2 - t1
         timings["decode_specular"] = t3 - t2
-    return Decoded(tree, dev, K, T, center, rgb, depth, valid, pos, normal, dirs, ior, fres, box)
 
 
 def eta_of(ior: torch.Tensor, fresnel: torch.Tensor) -> torch.Tensor:

@@ -13,6 +13,7 @@ import torch
 from . import nbkernels as nk
 from . import nbsearch as ns
 from . import ops
+from .decode import record_decode_timings
 from .encoding import FRESNEL_NONE, REFLECTIVE, RayTree
 
 
@@ -74,10 +75,7 @@ def decode(tree: RayTree, opts, timings: dict | None = None):
         r[y0:y1, x0:x1] = torch.from_numpy(np.asarray(tree.rgb[i][y0:y1, x0:x1]))
         rgb.append(r)
     t3 = time.perf_counter()
-    if timings is not None:
-        timings["decode_diffuse"] = t1 - tic
-        timings["decode_normal"] = t2 - t1
-        timings["decode_specular"] = t3 - t2
+    record_decode_timings(timings, tic, t1, t2, t3)
     return Decoded(tree, torch.device("cpu"), K, T, center, rgb, [_t(d) for d in depth],
                    [_t(v) for v in valid], [_t(p) for p in pos], [_t(nd)] + [None] * (n - 1),
                    [_t(d) for d in dirs], _t(ior), _t(fres), box)
