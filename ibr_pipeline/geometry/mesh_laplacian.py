@@ -56,16 +56,6 @@ def cotangent_laplacian(vertices: np.ndarray, faces: np.ndarray):
     return (off - sp.diags(np.asarray(off.sum(1)).ravel())).tocsr()
 
 
-def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
-    """(n,) bool: vertices on an edge used by exactly one face."""
-    F = np.asarray(faces, np.int64)
-    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    uniq, cnt = np.unique(e, axis=0, return_counts=True)
-    out = np.zeros(n, bool)
-    out[uniq[cnt == 1].ravel()] = True
-    return out
-
-
 @dataclass
 class ControlMesh:
     """A regular triangulated grid of control vertices over an image region: node (i, j) sits at

@@ -9,9 +9,18 @@ import numpy as np
 import pytest
 
 from ibr_pipeline.geometry.decompose import DecomposeOptions, ViewGeom, _decompose, project
-from ibr_pipeline.geometry.mesh_laplacian import (boundary_vertices, cotangent_laplacian,
-                                                  grid_control_mesh)
+from ibr_pipeline.geometry.mesh_laplacian import cotangent_laplacian, grid_control_mesh
 from ibr_pipeline.scene import Camera
+
+
+def boundary_vertices(faces: np.ndarray, n: int) -> np.ndarray:
+    """(n,) bool: vertices on an edge used by exactly one face."""
+    F = np.asarray(faces, np.int64)
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, cnt = np.unique(e, axis=0, return_counts=True)
+    out = np.zeros(n, bool)
+    out[uniq[cnt == 1].ravel()] = True
+    return out
 
 
 def _irregular_flat_mesh(seed=0):
