@@ -173,7 +173,7 @@ def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
     results: list[StageResult] = []
     try:
         for s in selected:
-            ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws))
+            ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws), progress=progress)
             plan = plan_stage(s, ctx, hashes, force, None)
             if plan.state == "not built":
                 log.warning("stage %-13s NOT BUILT YET — %s", s.name, s.todo or "planned")

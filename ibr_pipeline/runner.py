@@ -40,6 +40,7 @@ class StageContext:
     stage: str
     config: StageConfig
     scene: object | None = None  # scene.Scene once `ingest` has run
+    progress: bool = True        # False with `ibr ... --no-progress`: the stage's own bars too
 
     def path(self, key: str) -> Path:
         return self.ws.path(key)

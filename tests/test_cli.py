@@ -65,6 +65,24 @@ def test_help_is_light_and_lists_every_stage():
         assert flag in res.stdout
 
 
+def test_no_progress_silences_the_stages_own_bars(workspace, monkeypatch):
+    """ingest's image check has its own tqdm bar; --no-progress must disable it too (each bar's
+    state is recorded when it is created)."""
+    import tqdm
+    seen = []
+    init = tqdm.tqdm.__init__
+
+    def spy(self, *a, **k):
+        init(self, *a, **k)
+        seen.append((k.get("desc"), self.disable))
+    monkeypatch.setattr(tqdm.tqdm, "__init__", spy)
+    assert main(["ingest", str(workspace), "--force", "--no-progress"]) == 0
+    assert ("ingest: checking images", True) in seen
+    seen.clear()
+    assert main(["ingest", str(workspace), "--force"]) == 0
+    assert ("ingest: checking images", False) in seen
+
+
 @pytest.mark.parametrize("stage", [s.name for s in STAGES])
 def test_every_stage_help_prints(stage, capsys):
     """`ibr STAGE --help` lists the stage's config flags (a '%' in a field's help once crashed

@@ -214,7 +214,8 @@ def _mvs_depths(ctx, cams, rec, report) -> dict:
     torch.set_num_threads(cfg.threads)  # threads beyond the free cores only spin-wait
     raw, t0, c0 = {}, time.perf_counter(), time.process_time()
     try:
-        for n in tqdm(cams, desc="global_mesh: MVS", unit="view", disable=not cfg.progress, leave=False):
+        for n in tqdm(cams, desc="global_mesh: MVS", unit="view",
+                      disable=not (cfg.progress and ctx.progress), leave=False):
             lo, hi = cfg.mvs_depth_min, cfg.mvs_depth_max
             if rec is not None:
                 _, z = keypoint_depths(rec, n)
@@ -298,7 +299,7 @@ def run(ctx: StageContext) -> None:
                     stats["reflector_pixels"] += k
                 yield d, c, read_image(ws.path(scene.view(n).image))
         frames = _mvs_frames()
-    mesh, fstats = tsdf_fuse(frames, fopts, progress=cfg.progress, total=len(cams))
+    mesh, fstats = tsdf_fuse(frames, fopts, progress=cfg.progress and ctx.progress, total=len(cams))
     if len(mesh.faces) == 0:
         raise InputError(f"{ws.input_root}: fusion produced an empty mesh (no usable depth)")
     report["timings"]["fusion_ms_per_frame"] = fstats["ms_per_frame"]

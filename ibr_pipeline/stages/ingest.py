@@ -38,7 +38,8 @@ def run(ctx: StageContext) -> None:
     if len(scene.views) < cfg.min_views:
         raise InputError(f"{ws.input_root}: {len(scene.views)} image(s) found, "
                          f"ingest.min_views is {cfg.min_views}")
-    for view in tqdm(scene.views, desc="ingest: checking images", unit="img", leave=False):
+    for view in tqdm(scene.views, desc="ingest: checking images", unit="img", leave=False,
+                     disable=not ctx.progress):
         path = ws.path(view.image)
         if cfg.check_pixels:
             h, w = read_image(path).shape[:2]

@@ -142,7 +142,7 @@ def run(ctx: StageContext) -> None:
     from ..scene import cameras_to_json
 
     ws = ctx.ws
-    progress = log.isEnabledFor(logging.INFO)
+    progress = ctx.progress and log.isEnabledFor(logging.INFO)
     settings = render_settings(ctx.config)
     sets = render_sets(ctx)
     models = {True: IBRModel.load(ws, layers=True, settings=settings, progress=progress)}

@@ -155,7 +155,8 @@ def run(ctx: StageContext) -> None:
         return color, depth
 
     t0 = time.perf_counter()
-    frames = render_low_res(names, cams, renderer, cfg.scale, cfg.progress, cache)
+    show = cfg.progress and ctx.progress   # `ibr ... --no-progress` silences the stage's bars too
+    frames = render_low_res(names, cams, renderer, cfg.scale, show, cache)
     render_s = time.perf_counter() - t0
     targets = {}
     for n in names:
@@ -182,7 +183,7 @@ def run(ctx: StageContext) -> None:
                         warp_weight=cfg.warp_weight, l1_weight=cfg.l1_weight,
                         vgg_weights=str(ws.path(cfg.vgg_weights)) if cfg.vgg_weights else "",
                         seed=cfg.seed, checkpoint_every=cfg.checkpoint_every, device=cfg.device, threads=cfg.threads,
-                        progress=cfg.progress, capture_fraction=cfg.capture_fraction)
+                        progress=show, capture_fraction=cfg.capture_fraction)
     result = train(model_cfg, train_samples, val_samples, opts, ws.path(CHECKPOINT), digest,
                    capture_samples=capture_samples)
     device = next(result.model.parameters()).device
