@@ -281,20 +281,74 @@ def _visible_in_k(tg, kg, tol: float):
     return sel, a, b, ok
 
 
-def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
-    """Predict the held-out view t's reflector pixels from neighbour k. Layered: I0_k at
-    a = w(u, M0) (surface points of t projected into k) + R_k = beta I1_k at b = w(u, M1)
-    (t's mirror-world points projected into k), as in Eq. 8; unsplit: I_k(a). `layers` =
-    (I0_k, R_k) of another source (GT). Returns (target, layered, unsplit, extra) on the pixels
-    where both warps are valid, or None."""
+def predict(tg, kg, R_k, tol: float = 0.05, layers=None, own_r=None) -> dict | None:
+    """Predictions of the held-out view t's reflector pixels (`sel` = t's mask with M1) from
+    neighbour k, on every `sel` pixel (`ok` marks where both warps are valid; other pixels are 0).
+    Layered: I0_k at a = w(u, M0) (surface points of t projected into k) + R_k = beta I1_k at
+    b = w(u, M1) (t's mirror-world points projected into k), as in Eq. 8; unsplit: I_k(a).
+    `layers` = (I0_k, R_k) of another source (GT): `gt_layers`. `own_r` = t's own reflection
+    layer R_t (GT) on `sel`: `perfect_r` = I0_k(a) from `layers` + R_t, the prediction by a
+    perfect reflection layer, whose error is the surface layer's resampling alone (the part both
+    predictions share). None when fewer than 50 pixels are valid."""
     from ..geometry.decompose import sample_bilinear
     sel, a, b, ok = _visible_in_k(tg, kg, tol)
     if ok.sum() < 50:
         return None
+    out = {"sel": sel, "ok": ok, "target": tg.image[sel]}
+
+    def put(x):
+        full = np.zeros((len(ok), 3))
+        full[ok] = x
+        return full
     a, b = a[ok], b[ok]
-    lay = sample_bilinear(kg.image - R_k, a) + sample_bilinear(R_k, b)
-    extra = None if layers is None else sample_bilinear(layers[0], a) + sample_bilinear(layers[1], b)
-    return tg.image[sel][ok], lay, sample_bilinear(kg.image, a), extra, float(ok.mean())
+    out["layers"] = put(sample_bilinear(kg.image - R_k, a) + sample_bilinear(R_k, b))
+    out["unsplit"] = put(sample_bilinear(kg.image, a))
+    if layers is not None:
+        s0 = sample_bilinear(layers[0], a)
+        out["gt_layers"] = put(s0 + sample_bilinear(layers[1], b))
+        if own_r is not None:
+            out["perfect_r"] = put(s0 + own_r[ok])
+    return out
+
+
+def rerender(tg, kg, R_k, tol: float = 0.05, layers=None):
+    """`predict` on the valid pixels only: (target, layered, unsplit, extra, coverage) with extra
+    the prediction from `layers` (or None), or None."""
+    p = predict(tg, kg, R_k, tol, layers)
+    if p is None:
+        return None
+    ok = p["ok"]
+    extra = p["gt_layers"][ok] if layers is not None else None
+    return p["target"][ok], p["layers"][ok], p["unsplit"][ok], extra, float(ok.mean())
+
+
+def blend_predictions(preds: list[dict], weights) -> dict | None:
+    """The renderer's per-pixel blend (render/ibr.py, Eq. 15): each prediction of `predict`
+    weighted by its view weight where its warps are valid, normalised over the views valid at
+    the pixel; the same weights for every kind (layered, unsplit, GT layers), so the comparison
+    stays fair. Returns {kind: blended (N, 3) on the covered pixels, "target": ..., "n": N}."""
+    if not preds:
+        return None
+    Wt = np.zeros(len(preds[0]["ok"]))
+    for p, w in zip(preds, weights):
+        Wt += w * p["ok"]
+    cov = Wt > 0
+    if cov.sum() < 50:
+        return None
+    out = {"target": preds[0]["target"][cov], "n": int(cov.sum())}
+    for kind in ("layers", "unsplit", "gt_layers", "perfect_r"):
+        if all(kind in p for p in preds):
+            acc = sum(w * p["ok"][:, None] * p[kind] for p, w in zip(preds, weights))
+            out[kind] = acc[cov] / Wt[cov, None]
+    return out
+
+
+def view_weight_distance(t_cam, k_cam) -> float:
+    """Eq. 14's d_k of capture view k for the novel view t (render/selection.py): what the
+    renderer's Eq. 15 weights exp(-d_k / delta) are computed from."""
+    from ..render.selection import view_distance
+    return float(view_distance(k_cam.viewing_direction[None], k_cam.center[None],
+                               t_cam.viewing_direction, t_cam.center)[0])
 
 
 def _through_own(kg, X, centre, D, pos, offset):
@@ -332,23 +386,34 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
     decompositions of its nearest views k are recomputed without t: t is neither a neighbour nor
     a prior source), t's reflector pixels are predicted from k's layers and from k's unsplit
     image warped with the surface depth, and compared with t's own image (PSNR inside the mask,
-    pixels where both warps are valid). Also: the same prediction from k's GT layers."""
+    pixels where both warps are valid). Also: the same prediction from k's GT layers, and the
+    one of a perfect reflection layer (k's GT surface layer + t's own GT reflection layer): its
+    gain over the unsplit warp (`perfect_r`) bounds what any split can gain with these warps,
+    because both predictions share the surface layer's resampling error.
+
+    Per pair (t, k) and, as render/ibr.py re-renders, per held-out view with the neighbours'
+    predictions blended per pixel by the renderer's Eq. 15 weights (`blended_*`; the unsplit
+    image blended with the same weights)."""
     from ..config import build_config
     from ..geometry.decompose import pose_distance
+    from ..render.blend import view_weights
     from ..stages.reflection import ReflectionConfig, _decompose_reflector, options
     _, loader = _loader(ws, base, m1_noise)
     cfg = build_config(ReflectionConfig, "reflection", base)
     opts = options(cfg)
     names = list(loader.names)
     per: dict = {}
+    kinds = ("layers", "unsplit", "gt_layers", "perfect_r")
     t0 = time.perf_counter()
     for refl in loader.reflectors:
         seen = [n for n in names if loader.mask(n, refl).sum() >= cfg.min_mask_pixels]
         for t in seen:
             tg = loader.geom(t, refl)
+            t0_gt, t1_gt, tb_gt = read_gt(scene, t)
+            r_t = (tb_gt[..., None] * t1_gt)[tg.mask & (tg.D1 > 0)]
             loader.names = [n for n in names if n != t]
             _forget_passes(loader)
-            used = 0
+            used, preds, dists = 0, [], []
             for k in sorted((k for k in seen if k != t),
                             key=lambda k: pose_distance(tg.camera, loader.geom(k, refl).camera)):
                 if used >= neighbours:
@@ -358,16 +423,21 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                     continue
                 kg = info["geom"]
                 g0, g1, gb = read_gt(scene, k)
-                got = rerender(tg, kg, info["R"], opts.visibility_tol,
-                               layers=(g0, gb[..., None] * g1))
+                got = predict(tg, kg, info["R"], opts.visibility_tol,
+                              layers=(g0, gb[..., None] * g1), own_r=r_t)
                 if got is None:
                     continue
                 used += 1
-                tgt, lay, uns, gtl, cover = got
-                d = per.setdefault(refl["name"], {"pairs": [], "se": np.zeros(3), "n": 0})
-                d["pairs"].append({"heldout": t, "from": k, "pixels": len(tgt), "coverage": cover,
-                                   "layers": _psnr(lay, tgt), "unsplit": _psnr(uns, tgt),
-                                   "gt_layers": _psnr(gtl, tgt)})
+                preds.append(got)
+                dists.append(view_weight_distance(tg.camera, kg.camera))
+                ok = got["ok"]
+                tgt = got["target"][ok]
+                lay, uns, gtl, pr = (got[x][ok] for x in kinds)
+                d = per.setdefault(refl["name"], {"pairs": [], "views": [], "se": np.zeros(4),
+                                                  "n": 0, "bse": np.zeros(4), "bn": 0})
+                d["pairs"].append({"heldout": t, "from": k, "pixels": len(tgt),
+                                   "coverage": float(ok.mean()),
+                                   **{x: _psnr(y, tgt) for x, y in zip(kinds, (lay, uns, gtl, pr))}})
                 m0o, m1o = info.get("m0_offset"), info.get("m1_offset")
                 own = []  # k's own M1 (and M0), before / after their offsets
                 if m1o is not None:
@@ -379,24 +449,49 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                     got = rerender_own(tg, kg, info["R"], o1, opts.visibility_tol, o0, m0)
                     if got is not None:
                         d["pairs"][-1][key] = _psnr(got[1], got[0])
-                d["se"] += [((x - tgt) ** 2).mean(1).sum() for x in (lay, uns, gtl)]
+                d["se"] += [((x - tgt) ** 2).mean(1).sum() for x in (lay, uns, gtl, pr)]
                 d["n"] += len(tgt)
+            w = view_weights(np.asarray(dists)) if dists else []
+            bl = blend_predictions(preds, w)
+            if bl is not None:
+                d = per[refl["name"]]
+                tgt = bl["target"]
+                d["views"].append({"heldout": t, "from": [p["from"] for p in d["pairs"][-used:]],
+                                   "weights": [float(x) for x in w / np.sum(w)],
+                                   "pixels": bl["n"],
+                                   **{x: _psnr(bl[x], tgt) for x in kinds}})
+                d["bse"] += [((bl[x] - tgt) ** 2).mean(1).sum() for x in kinds]
+                d["bn"] += bl["n"]
     loader.names = names
     out = {"seconds": time.perf_counter() - t0, "neighbours_per_view": neighbours}
     for name, d in per.items():
-        ps = d["pairs"]
+        ps, vs = d["pairs"], d["views"]
+        med = lambda rows, f: float(np.median([f(r) for r in rows])) if rows else None  # noqa: E731
         pooled = [float(10 * np.log10(d["n"] / max(se, 1e-30))) for se in d["se"]]
-        out[name] = {"pairs": len(ps),
-                     "median_layers_psnr": float(np.median([p["layers"] for p in ps])),
-                     "median_unsplit_psnr": float(np.median([p["unsplit"] for p in ps])),
-                     "median_gain_db": float(np.median([p["layers"] - p["unsplit"] for p in ps])),
-                     "median_gt_layers_psnr": float(np.median([p["gt_layers"] for p in ps])),
-                     "pooled_layers_psnr": pooled[0], "pooled_unsplit_psnr": pooled[1],
-                     "pooled_gt_layers_psnr": pooled[2], "per_pair": ps}
+        bpooled = [float(10 * np.log10(d["bn"] / max(se, 1e-30))) if d["bn"] else None
+                   for se in d["bse"]]
+        o = out[name] = {"pairs": len(ps),
+                         "median_layers_psnr": med(ps, lambda p: p["layers"]),
+                         "median_unsplit_psnr": med(ps, lambda p: p["unsplit"]),
+                         "median_gain_db": med(ps, lambda p: p["layers"] - p["unsplit"]),
+                         "median_gt_layers_psnr": med(ps, lambda p: p["gt_layers"]),
+                         "median_gt_layers_gain_db": med(ps, lambda p: p["gt_layers"] - p["unsplit"]),
+                         "median_perfect_r_psnr": med(ps, lambda p: p["perfect_r"]),
+                         "median_perfect_r_gain_db": med(ps, lambda p: p["perfect_r"] - p["unsplit"]),
+                         "pooled_layers_psnr": pooled[0], "pooled_unsplit_psnr": pooled[1],
+                         "pooled_gt_layers_psnr": pooled[2], "pooled_perfect_r_psnr": pooled[3],
+                         "blended_views": len(vs)}
+        for x in kinds:
+            o[f"blended_median_{x}_psnr"] = med(vs, lambda v: v[x])
+        for x in ("layers", "gt_layers", "perfect_r"):
+            o[f"blended_median_{x}_gain_db"] = med(vs, lambda v: v[x] - v["unsplit"])
+        for x, v in zip(kinds, bpooled):
+            o[f"blended_pooled_{x}_psnr"] = v
+        o["per_pair"], o["per_view"] = ps, vs
         for key in ("layers_own_m1", "layers_own_m1_opt", "layers_own", "layers_own_opt"):
             v = [p[key] for p in ps if key in p]
             if v:
-                out[name]["median_" + key + "_psnr"] = float(np.median(v))
+                o["median_" + key + "_psnr"] = float(np.median(v))
     return out
 
 

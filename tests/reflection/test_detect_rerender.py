@@ -71,3 +71,47 @@ def test_rerender_two_layers_beats_the_unsplit_image():
     tgt, lay, uns, _, cover = got
     assert cover > 0.5
     assert _psnr(lay, tgt) > 33 and _psnr(lay, tgt) > _psnr(uns, tgt) + 10, (_psnr(lay, tgt), _psnr(uns, tgt))
+
+
+def test_predict_perfect_reflection_bounds_the_gain():
+    """Bench `predict`: a perfect reflection layer (k's surface layer + t's own reflection) is at
+    least as good as k's true layers here, and on a diffuse plane (beta = 0) no split can gain
+    anything over the unsplit warp: the layered, unsplit and perfect-R predictions coincide."""
+    from ibr_pipeline.bench.reflection import _psnr, predict
+    for beta, min_gain in ((0.3, 10.0), (0.0, None)):
+        (a, b), cols = _scene(beta)
+        sel = a.mask & (a.D1 > 0)
+        p = predict(a, b, beta * cols["b"], layers=(b.image - beta * cols["b"], beta * cols["b"]),
+                    own_r=(beta * cols["a"])[sel])
+        ok = p["ok"]
+        tgt = p["target"][ok]
+        ps = {k: _psnr(p[k][ok], tgt) for k in ("layers", "unsplit", "gt_layers", "perfect_r")}
+        assert np.all(p["layers"][~ok] == 0) and ok.mean() > 0.5
+        if min_gain is None:
+            assert np.allclose(p["layers"][ok], p["unsplit"][ok], atol=1e-12)
+            assert np.allclose(p["perfect_r"][ok], p["unsplit"][ok], atol=1e-12)
+        else:
+            assert ps["perfect_r"] >= ps["gt_layers"] - 0.5, ps
+            assert ps["perfect_r"] > ps["unsplit"] + min_gain, ps
+
+
+def test_blend_predictions_normalises_over_valid_views():
+    """The renderer-like blend: per pixel, the weighted mean over the views valid there (the same
+    weights for every kind); pixels no view covers are left out."""
+    from ibr_pipeline.bench.reflection import blend_predictions
+    n = 100
+    tgt = np.full((n, 3), 0.5)
+    ok1 = np.arange(n) < 70
+    ok2 = np.arange(n) >= 30
+    ok2[95:] = False
+    ok1[95:] = False
+
+    def pred(ok, v):
+        return {"ok": ok, "target": tgt, **{k: np.where(ok[:, None], v, 0.0) * np.ones((n, 3))
+                                            for k in ("layers", "unsplit")}}
+    bl = blend_predictions([pred(ok1, 0.2), pred(ok2, 0.6)], np.array([3.0, 1.0]))
+    assert bl["n"] == 95 and "gt_layers" not in bl
+    got = bl["layers"][:, 0]
+    assert np.allclose(got[:30], 0.2) and np.allclose(got[70:], 0.6)
+    assert np.allclose(got[30:70], (3 * 0.2 + 0.6) / 4)
+    assert np.allclose(bl["unsplit"], bl["layers"])
