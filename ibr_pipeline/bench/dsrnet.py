@@ -4,7 +4,8 @@ and speed.
     python -m ibr_pipeline.bench.dsrnet [--scene tiny|mirror_room | --folder SYNTH_DIR]
         [--steps 1200] [--time-budget 0] [--preset cpu|paper] [--device cpu|cuda|auto]
         [--no-ablation] [--sequence 12] [--repeats 5] [--out bench_dsrnet.json]
-        [--workspace WS [--model WS/nn/dsrnet.pt]] [--capture-fraction 0.5]
+        [--workspace WS [--model WS/nn/dsrnet.pt [--model-no-mvr WS2/nn/dsrnet.pt]]]
+        [--capture-fraction 0.5]
 
 Data: the STAND-IN low-res renderer (nn/data.py: ground truth + IBR-like artefacts), so the figures
 say what the network does with blur/misalignment/holes, not with real IBR renders. With
@@ -13,7 +14,9 @@ leave-one-out renders of issue #7 (`render.ibr.IBRModel`) are used instead, for 
 validation, the full-resolution baseline and the dense sequence (ground truth from the tracer).
 `--model FILE` (with `--workspace`) trains nothing: it measures a trained network, e.g. the stage's
 own `WS/nn/dsrnet.pt`, on the same held-out views (the stage's split) against the full-resolution
-render. `--capture-fraction` mixes capture pairs into training (`data.capture_pairs`, docs/DSRNET.md).
+render; `--model-no-mvr FILE` adds a network trained separately with `supersample.use_mvr=false`
+(the Table 3 ablation on real renders, same held-out views and sequence). `--capture-fraction`
+mixes capture pairs into training (`data.capture_pairs`, docs/DSRNET.md).
 
 Measured:
 * held-out capture views (the 10 % split, never trained on): PSNR/SSIM of DSRNet with MVR,
@@ -110,6 +113,77 @@ def evaluate_methods(samples, models: dict, full_res: dict, device, scale: int) 
     return {"mean": summary, "frames": len(samples)}, outs
 
 
+def error_breakdown(samples, outs: dict, full_depth: dict, scale: int) -> dict:
+    """Where each method loses against the ground truth (issue #8 diagnosis), pooled over samples:
+    PSNR of the mean squared error per region and per frequency band, and how good the inputs are.
+
+    Regions of the full-resolution image: `depth_edges` (5x5 around a > 3 % jump of the
+    full-resolution render's depth), `holes` (no depth in that render), `textured` (top 20 % of the
+    ground truth's gradient magnitude, off depth edges), `flat` (the rest). Bands: `low` = both
+    images blurred with a Gaussian of sigma 2 px, `high` = the remainder. `bicubic_of_gt` is the
+    bicubic upsampling of the area-downsampled ground truth (what an ideal half-resolution input
+    gives without a network). `input_psnr`: the half-resolution render and the area-downsampled
+    full-resolution render, both against the area-downsampled ground truth."""
+    import cv2
+
+    from ..nn.infer import upsample
+
+    def area(img):
+        h, w = img.shape[:2]
+        return cv2.resize(img, (w // scale, h // scale), interpolation=cv2.INTER_AREA)
+
+    blur = lambda x: cv2.GaussianBlur(x, (0, 0), 2.0)  # noqa: E731
+    sq = {}  # method -> key -> [sum of squared error, pixel count]
+    inp = {"render_half_res": [], "full_res_render_downsampled": []}
+    outs = dict(outs)
+    outs["bicubic_of_gt"] = [upsample(area(s.target), scale, "bicubic") for s in samples]
+    for i, s in enumerate(samples):
+        g = s.target
+        gray = cv2.cvtColor(g, cv2.COLOR_RGB2GRAY)
+        grad = np.hypot(cv2.Sobel(gray, cv2.CV_32F, 1, 0), cv2.Sobel(gray, cv2.CV_32F, 0, 1))
+        regions = {"all": np.ones(gray.shape, bool)}
+        d = full_depth.get(s.name)
+        if d is not None:
+            dd = np.where(d > 0, d, np.nan)
+            jump = np.zeros(gray.shape, bool)
+            with np.errstate(invalid="ignore"):
+                jump[:, 1:] |= np.abs(np.diff(dd, axis=1)) > 0.03 * dd[:, 1:]
+                jump[1:] |= np.abs(np.diff(dd, axis=0)) > 0.03 * dd[1:]
+            edges = cv2.dilate(jump.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+            regions["depth_edges"], regions["holes"] = edges, d <= 0
+        else:
+            edges = np.zeros(gray.shape, bool)
+        regions["textured"] = (grad > np.percentile(grad, 80)) & ~edges
+        regions["flat"] = ~regions["textured"] & ~edges
+        for k, imgs in outs.items():
+            if len(imgs) != len(samples):
+                continue
+            e = ((imgs[i] - g) ** 2).mean(-1)
+            acc = sq.setdefault(k, {})
+            for r, m in regions.items():
+                a = acc.setdefault(r, [0.0, 0])
+                a[0] += float(e[m].sum())
+                a[1] += int(m.sum())
+            lo = ((blur(imgs[i]) - blur(g)) ** 2).mean()
+            hi = (((imgs[i] - blur(imgs[i])) - (g - blur(g))) ** 2).mean()
+            for r, v in (("low_band", lo), ("high_band", hi)):
+                a = acc.setdefault(r, [0.0, 0])
+                a[0] += float(v) * e.size
+                a[1] += e.size
+        ref = area(g)
+        inp["render_half_res"].append(float(((s.cur.color - ref) ** 2).mean()))
+        if "full_res_render" in outs:
+            inp["full_res_render_downsampled"].append(
+                float(((area(outs["full_res_render"][i]) - ref) ** 2).mean()))
+    to_db = lambda m: float(-10 * np.log10(max(m, 1e-12)))  # noqa: E731
+    out = {k: {r: to_db(a[0] / max(a[1], 1)) for r, a in acc.items()} for k, acc in sq.items()}
+    first = next(iter(sq.values()), {})
+    out["pixel_share"] = {r: a[1] / max(first["all"][1], 1) for r, a in first.items()
+                         if not r.endswith("_band")}
+    out["input_psnr"] = {k: to_db(float(np.mean(v))) for k, v in inp.items() if v}
+    return out
+
+
 def flicker(outputs: list, gts: list) -> float:
     """Mean |(O_t − O_{t−1}) − (G_t − G_{t−1})| over consecutive frames."""
     e = [np.abs((outputs[t] - outputs[t - 1]) - (gts[t] - gts[t - 1])).mean()
@@ -134,6 +208,8 @@ def main(argv=None) -> int:
                     "input: use the real leave-one-out renders of issue #7 instead of the stand-in")
     ap.add_argument("--model", help="a trained DSRNet file (with --workspace): measure it, train "
                     "nothing (no ablation)")
+    ap.add_argument("--model-no-mvr", help="with --model: a trained W/O MVR DSRNet file (the stage "
+                    "with use_mvr=false), measured beside it")
     ap.add_argument("--capture-fraction", type=float, default=0.0,
                     help="share of training crops from capture pairs (0 = render pairs only)")
     ap.add_argument("--preset", choices=("cpu", "paper"), default="cpu")
@@ -153,6 +229,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.model and not args.workspace:
         print("bench.dsrnet: --model needs --workspace", file=sys.stderr)
+        return 2
+    if args.model_no_mvr and not args.model:
+        print("bench.dsrnet: --model-no-mvr needs --model", file=sys.stderr)
         return 2
     if args.steps < 1 or args.repeats < 1 or args.sequence < 0:
         print("bench.dsrnet: --steps/--repeats must be >= 1, --sequence >= 0", file=sys.stderr)
@@ -187,7 +266,9 @@ def main(argv=None) -> int:
     cap = capture_pairs(tr_pairs, frames, gt) if args.capture_fraction > 0 else []
     va = [make_sample(c, p, frames, gt[c]) for c, p in sequence_pairs(names, val_names)
           if p not in val_names]
-    full_res = {n: renderer(n, cams[n])[0] for n in val_names}
+    full_renders = {n: renderer(n, cams[n]) for n in val_names}
+    full_res = {n: c for n, (c, _) in full_renders.items()}
+    full_depth = {n: d for n, (_, d) in full_renders.items()}
     report = {"scene": str(folder), "renderer": "ibr" if args.workspace else "standin", "preset": args.preset,
               "device": str(device), "train_pairs": len(tr), "val_views": val_names,
               "capture_pairs": len(cap), "capture_fraction": args.capture_fraction,
@@ -203,6 +284,13 @@ def main(argv=None) -> int:
         from ..nn.train import load_model
         models["dsrnet"] = load_model(Path(args.model), device)
         report["model"] = str(args.model)
+        if args.model_no_mvr:
+            models["dsrnet_no_mvr"] = load_model(Path(args.model_no_mvr), device)
+            if models["dsrnet_no_mvr"].mvr is not None:
+                print(f"bench.dsrnet: {args.model_no_mvr} has MVR (train it with "
+                      "supersample.use_mvr=false)", file=sys.stderr)
+                return 2
+            report["model_no_mvr"] = str(args.model_no_mvr)
         variants = []
     for key, mvr in variants:
         cfg = preset(args.preset, use_mvr=mvr)
@@ -216,9 +304,11 @@ def main(argv=None) -> int:
         print(f"trained {key}: {r.steps} steps in {r.seconds:.0f} s", flush=True)
     report["training"] = trainings
     with torch_threads(cpu_threads(args.threads)):
-        val_res, _ = evaluate_methods(va, models, full_res, device, scale)
+        val_res, val_outs = evaluate_methods(va, models, full_res, device, scale)
         report["heldout_views"] = val_res
+        report["heldout_error_breakdown"] = error_breakdown(va, val_outs, full_depth, scale)
         if args.sequence:
+            t_seq = time.perf_counter()
             seq = dense_sequence(folder, args.sequence)
             sframes, sgt = {}, {}
             for name, cam, img, depth in seq:
@@ -233,6 +323,7 @@ def main(argv=None) -> int:
             seq_res, outs = evaluate_methods(samples, models, full, device, scale)
             gts = [sgt[n] for n in order]
             seq_res["flicker"] = {k: flicker(v, gts) for k, v in outs.items()}
+            seq_res["seconds"] = time.perf_counter() - t_seq  # trace + renders + all methods
             report["sequence"] = seq_res
         # inference speed at --infer-size output (random content: speed only)
         W, H = (int(x) for x in args.infer_size.lower().split("x"))
@@ -269,6 +360,15 @@ def _summary(r: dict) -> str:
         if part in r:
             lines.append(f"  {part} ({r[part]['frames']} frames): " + ", ".join(
                 f"{k} {v['psnr']:.2f} dB / {v['ssim']:.4f}" for k, v in r[part]["mean"].items()))
+    eb = r.get("heldout_error_breakdown")
+    if eb:
+        lines.append("  held-out error breakdown (PSNR of pooled MSE, dB; pixel share " + ", ".join(
+            f"{k} {v:.3f}" for k, v in eb["pixel_share"].items()) + "):")
+        for k, v in eb.items():
+            if k not in ("pixel_share", "input_psnr"):
+                lines.append(f"    {k:18s} " + ", ".join(f"{r} {x:.2f}" for r, x in v.items()))
+        lines.append("    inputs vs area-downsampled GT: " + ", ".join(
+            f"{k} {v:.2f}" for k, v in eb["input_psnr"].items()))
     if "sequence" in r:
         lines.append("  flicker: " + ", ".join(f"{k} {v:.4f}"
                                                 for k, v in r["sequence"]["flicker"].items()))
