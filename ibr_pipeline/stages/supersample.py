@@ -99,9 +99,16 @@ def inputs(ctx: StageContext) -> list[str]:
     return keys
 
 
+# options that change neither a render nor a training step: a killed run resumed with other values
+# of these (e.g. 1 thread instead of 2 when the machine got busy) keeps its renders and checkpoint
+_RESUME_FREE = ("time_budget_s", "threads", "progress", "checkpoint_every", "device")
+
+
 def _digest(ctx: StageContext) -> str:
-    """Cheap fingerprint of the inputs + config for the resume cache (size, mtime of each input)."""
-    h = hashlib.sha256(ctx.config.digest().encode())
+    """Cheap fingerprint of the inputs + config for the resume cache (size, mtime of each input);
+    the options of `_RESUME_FREE` are left out."""
+    same = {k: v for k, v in ctx.config.to_dict().items() if k not in _RESUME_FREE}
+    h = hashlib.sha256(json.dumps(same, sort_keys=True).encode())
     for k in inputs(ctx):
         p = ctx.ws.path(k)
         st = p.stat() if p.is_file() else None

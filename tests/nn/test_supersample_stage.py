@@ -100,3 +100,17 @@ def test_stage_mixes_capture_pairs_of_training_views_only(ws):
     assert rep["capture_fraction"] == 0.5 and rep["capture_pairs"] == rep["train_pairs"] > 0
     assert rep["val_views"] and not set(rep["val_views"]) & set(rep["train_views"])
     assert rep["validation"]["psnr"] > 15
+
+
+def test_resume_cache_ignores_run_only_options(tmp_path):
+    """A killed run restarted with another thread count or time budget keeps its renders and
+    checkpoint (the resume digest leaves those options out); a training option changes it."""
+    from types import SimpleNamespace
+
+    from ibr_pipeline.stages.supersample import SupersampleConfig, _digest
+
+    fake_ws = SimpleNamespace(exists=lambda key: False, path=lambda key: tmp_path / key)
+    digest = lambda **kw: _digest(SimpleNamespace(config=SupersampleConfig(**kw), ws=fake_ws))  # noqa: E731
+    base = digest()
+    assert digest(threads=2, time_budget_s=1200.0, progress=False, checkpoint_every=50) == base
+    assert digest(steps=7000) != base and digest(use_mvr=False) != base
