@@ -436,7 +436,8 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                 d = per.setdefault(refl["name"], {"pairs": [], "views": [], "se": np.zeros(4),
                                                   "n": 0, "bse": np.zeros(4), "bn": 0})
                 d["pairs"].append({"heldout": t, "from": k, "pixels": len(tgt),
-                                   "coverage": float(ok.mean()),
+                                   "coverage": float(ok.mean()), "d_k": dists[-1],
+                                   "pose_distance": pose_distance(tg.camera, kg.camera),
                                    **{x: _psnr(y, tgt) for x, y in zip(kinds, (lay, uns, gtl, pr))}})
                 m0o, m1o = info.get("m0_offset"), info.get("m1_offset")
                 own = []  # k's own M1 (and M0), before / after their offsets
