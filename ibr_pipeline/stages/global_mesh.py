@@ -39,7 +39,10 @@ class GlobalMeshConfig(StageConfig):
     scale: float = param(0.0, "metres per SfM unit when there is no depth (0 = keep SfM units)", min=0.0, max=1e6)
     dense: str = param("auto", "dense geometry: rgbd (TSDF of depth frames), mvs (plane sweep), "
                        "auto = rgbd when every view has depth", choices=("auto", "rgbd", "mvs"))
-    voxel_size: float = param(0.02, "TSDF voxel size in metres (SfM units without scale)", min=1e-4, max=1.0)
+    voxel_size: float = param(0.0, "TSDF voxel size in metres (SfM units without scale); 0 = auto: "
+                              "twice the depth frames' pixel footprint at their median depth, rounded "
+                              "to 5 mm (2 cm for 160x120 depth, 1 cm for 320x240 in mirror_room)",
+                              min=0.0, max=1.0)
     trunc_voxels: float = param(4.0, "TSDF truncation distance in voxels", min=1.0, max=64.0)
     depth_max: float = param(6.0, "ignore depth beyond this (metres)", min=0.1, max=1000.0)
     weight_threshold: float = param(0.5, "marching cubes where the TSDF weight (frames) reaches this",
@@ -66,6 +69,8 @@ class GlobalMeshConfig(StageConfig):
     progress: bool = param(True, "show progress bars")
 
     def check(self, prefix: str) -> None:
+        if 0.0 < self.voxel_size < 1e-4:
+            raise ConfigError(prefix + "voxel_size", f"must be 0 (auto) or at least 1e-4, got {self.voxel_size}")
         if self.mvs_window % 2 == 0:
             raise ConfigError(prefix + "mvs_window", f"must be odd, got {self.mvs_window}")
         if self.mvs_depth_min >= self.mvs_depth_max:
@@ -179,6 +184,27 @@ def _depth_frames(ctx, cams, depth_views, reflectors, view_masks, stats):
         yield d, c, read_image(ws.path(ctx.scene.view(name).image))
 
 
+def _auto_voxel(ctx, cams, depth_views, mvs_depths, metric: bool) -> float:
+    """`voxel_size = 0`: `fusion.auto_voxel_size` of the depth that will be fused (up to 16 depth
+    frames spread over the capture, or every MVS depth map)."""
+    from ..geometry.fusion import auto_voxel_size
+    from ..io.images import read_depth_png
+
+    if mvs_depths is not None:
+        samples = list(mvs_depths.values())
+    else:
+        names = list(cams)[::max(1, len(cams) // 16)]
+        samples = [(read_depth_png(ctx.ws.path(depth_views[n])), cams[n]) for n in names]
+    try:
+        v = auto_voxel_size(samples, metric)
+    except ValueError:
+        raise InputError(f"{ctx.ws.input_root}: no depth in any frame (global_mesh.voxel_size = 0 "
+                         "needs some to choose the voxel size)") from None
+    log.info("global_mesh: voxel size %.4g %s (auto: 2 depth-pixel footprints at the median depth)",
+             v, "m" if metric else "SfM units")
+    return v
+
+
 def _mvs_depths(ctx, cams, rec, report) -> dict:
     """{name: (depth at working size, camera at working size)} filtered by geometric consistency."""
     import cv2
@@ -281,14 +307,16 @@ def run(ctx: StageContext) -> None:
     if not reflectors:
         log.warning("global_mesh: no reflectors.json: what depth/MVS sees in mirrors (the mirror "
                     "world) is fused into the global mesh as if it were real geometry")
-    fopts = FusionOptions(voxel_size=cfg.voxel_size, trunc_voxels=cfg.trunc_voxels,
+    stats = {"reflector_pixels": 0}
+    depths = _mvs_depths(ctx, cams, rec, report) if dense == "mvs" else None
+    voxel = cfg.voxel_size or _auto_voxel(ctx, cams, depth_views, depths, report.get("units") == "metres")
+    report["voxel_size"] = {"value": voxel, "auto": not cfg.voxel_size}
+    fopts = FusionOptions(voxel_size=voxel, trunc_voxels=cfg.trunc_voxels,
                           depth_max=cfg.depth_max, weight_threshold=cfg.weight_threshold,
                           min_component=cfg.min_component)
-    stats = {"reflector_pixels": 0}
     if dense == "rgbd":
         frames = _depth_frames(ctx, cams, depth_views, reflectors, view_masks, stats)
     else:
-        depths = _mvs_depths(ctx, cams, rec, report)
 
         def _mvs_frames():
             for n, (d, c) in depths.items():
@@ -338,4 +366,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="camera poses (given or COLMAP SfM) and a global mesh "
               "(RGB-D TSDF fusion or plane-sweep MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="2", run=run, inputs=inputs, outputs=OUTPUTS)
+              config=GlobalMeshConfig, version="3", run=run, inputs=inputs, outputs=OUTPUTS)

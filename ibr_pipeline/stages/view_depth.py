@@ -62,7 +62,8 @@ class ViewDepthConfig(StageConfig):
                                 "distance between pixels 2s apart, parallel planes, at a colour "
                                 "edge: geometry/depth_rounded.py; an addition to Xu §4.2.1)")
     rounded_strides: tuple[int, ...] = param((2, 3, 4), "half distances s of the rounded-step test "
-                                             "(pixels at 320x240, scaled with the image width)")
+                                             "(pixels at 320x240 on a 2 cm-voxel G, scaled with the image "
+                                             "width x G's voxel size: ramp_scale)")
     rounded_min_rel: float = param(1.0, "rounded-step test threshold, fraction of Eq. 1's lambda",
                                    min=0.1, max=10.0)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
@@ -89,6 +90,26 @@ def _sources(ctx: StageContext, view: str) -> list[str]:
         return []
     cams = registered_cameras(ctx.ws)
     return select_sources(cams[view], cams, k=ctx.config.sources, exclude=(view,))
+
+
+G_VOXEL_TUNED = 0.02  # the rounded-step strides were tuned on a 2 cm-voxel G at 320x240
+
+
+def ramp_scale(width: int, g_voxel: float) -> int:
+    """Integer factor for the rounded-step strides: a TSDF rounds a step into a ramp about two
+    voxels wide, i.e. `voxel * f / z` pixels, so the strides follow width x voxel relative to the
+    2 cm G at 320x240 they were tuned on (1 for global_mesh's automatic 1 cm at 640x480 too)."""
+    return max(1, int(round(width / 320 * g_voxel / G_VOXEL_TUNED)))
+
+
+def _g_voxel(ws) -> float:
+    """G's TSDF voxel size from global/report.json (global_mesh version 3), else the old 2 cm."""
+    import json
+    try:
+        v = json.loads(ws.path("global/report.json").read_text())["voxel_size"]["value"]
+        return float(v) if v > 0 else G_VOXEL_TUNED
+    except (OSError, KeyError, TypeError, ValueError):
+        return G_VOXEL_TUNED
 
 
 def pixel_scale(width: int) -> int:
@@ -196,7 +217,8 @@ def _run(ctx: StageContext, view: str) -> None:
     timings["render_ms"] = 1000 * (time.perf_counter() - t)
     # pixel-valued parameters of our additions (rounded-step strides, MVS edge guard and check
     # radius) were tuned at 320x240: scaled with the width so that they cover the same image
-    # fraction at other sizes (at 640x480 the 2 cm TSDF ramps span twice as many pixels)
+    # fraction at other sizes (at 640x480 the 2 cm TSDF ramps span twice as many pixels); the
+    # rounded-step strides follow the ramps themselves: width x G's voxel size (ramp_scale)
     px = pixel_scale(cam.width)
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
     t = time.perf_counter()
@@ -208,7 +230,8 @@ def _run(ctx: StageContext, view: str) -> None:
 
         from ..geometry.depth_edges import refinement_mask
         from ..geometry.depth_rounded import canny_edges, rounded_steps
-        strides = tuple(px * int(s) for s in cfg.rounded_strides)
+        rs = ramp_scale(cam.width, _g_voxel(ws))
+        strides = tuple(rs * int(s) for s in cfg.rounded_strides)
         rounded = rounded_steps(depth0, det.points, det.normals, canny_edges(image), cfg.lambda_rel,
                                 strides, cfg.rounded_min_rel) & ~mask
         if rounded.any():
@@ -266,6 +289,7 @@ def _run(ctx: StageContext, view: str) -> None:
     ms = 1000 * (time.perf_counter() - t0)
     ws.write_json(f"{vd}/depth_report.json", {
         "view": view, "size": [cam.width, cam.height], "pixel_scale": px,
+        "ramp_scale": ramp_scale(cam.width, _g_voxel(ws)),
         "edge_pixels_init": int(det.edge_pixels.sum()), "edge_pixels": int(final.edge_pixels.sum()),
         "mask_pixels": int(mask.sum()), "rounded_step_pixels": int(rounded.sum()), "mvs_accepted": int(accepted.sum()),
         "interpolated": int(filled.sum()),
@@ -276,6 +300,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="3", run=run, per_view=True,
+              config=ViewDepthConfig, version="4", run=run, per_view=True,
               inputs=(REGISTERED_CAMERAS, "global/mesh.ply"), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)

@@ -35,6 +35,9 @@ def test_rgbd_fusion_with_reflectors_is_accurate(tiny_scene, tmp_path):
     rep = json.loads((ws / "global" / "report.json").read_text())
     assert rep["units"] == "metres" and rep["unregistered"] == [] and len(rep["registered"]) == 8
     assert rep["counts"]["reflector_pixels"] > 0
+    # voxel_size 0 (default) = auto: a 5 mm multiple in the allowed range, recorded as auto
+    v = rep["voxel_size"]
+    assert v["auto"] and 0.005 <= v["value"] <= 0.05 and abs(v["value"] / 0.005 - round(v["value"] / 0.005)) < 1e-9
     for f in ("sfm/cameras.txt", "sfm/images.txt", "global/cameras.json"):
         assert (ws / f).is_file()
     res = _evaluate(ws, scene_dir)
@@ -67,9 +70,10 @@ def test_depth_count_mismatch_is_a_clean_error(tiny_scene, tmp_path, capsys):
     assert not (ws / "global").exists() and not (ws / "sfm" / "cameras.txt").exists()
 
 
-def test_absurd_config_is_rejected(tiny_scene, tmp_path, capsys):
+@pytest.mark.parametrize("value", ["-1", "1e-6"])
+def test_absurd_config_is_rejected(tiny_scene, tmp_path, capsys, value):
     ws = tmp_path / "ws"
-    code = main(["run", str(ws), "--input", str(tiny_scene[0]), "--set", "global_mesh.voxel_size=-1"])
+    code = main(["run", str(ws), "--input", str(tiny_scene[0]), "--set", f"global_mesh.voxel_size={value}"])
     assert code == 2 and "global_mesh.voxel_size" in capsys.readouterr().err
 
 

@@ -297,3 +297,21 @@ def test_pixel_parameters_scale_with_the_width():
     """Strides / guard / check radius are given at 320x240 and keep their image fraction."""
     from ibr_pipeline.stages.view_depth import pixel_scale
     assert [pixel_scale(w) for w in (80, 160, 320, 479, 480, 640, 1280)] == [1, 1, 1, 1, 2, 2, 4]
+
+
+def test_rounded_strides_follow_the_ramp_width(tmp_path):
+    """A TSDF ramp is ~2 voxels wide: the strides scale with width x G's voxel (2 cm at 320 = 1),
+    and G's voxel comes from global/report.json (2 cm when an old report has none)."""
+    from ibr_pipeline.stages.view_depth import _g_voxel, ramp_scale
+    from ibr_pipeline.workspace import Workspace
+    assert [ramp_scale(w, 0.02) for w in (160, 320, 640, 1280)] == [1, 1, 2, 4]
+    assert [ramp_scale(w, 0.01) for w in (320, 640, 1280)] == [1, 1, 2]
+    ws_dir = tmp_path / "ws"
+    (ws_dir / "global").mkdir(parents=True)
+    (ws_dir / "ibr.toml").write_text('[input]\npath = "x"\n')
+    ws = Workspace(ws_dir)
+    assert _g_voxel(ws) == 0.02                                   # no report
+    (ws_dir / "global" / "report.json").write_text('{"dense": "rgbd"}')
+    assert _g_voxel(ws) == 0.02                                   # report without the field
+    (ws_dir / "global" / "report.json").write_text('{"voxel_size": {"value": 0.01, "auto": true}}')
+    assert _g_voxel(ws) == 0.01
