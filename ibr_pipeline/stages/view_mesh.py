@@ -26,10 +26,11 @@ class ViewMeshConfig(StageConfig):
                              "depth error (misses count 5 per cent) grows by at most this", min=0.0, max=0.05)
     lambda_rel: float = param(0.01, "Eq. 1 threshold for the cuts (Xu §4.2.1: 0.01)", min=1e-4, max=0.5)
     agg: float = param(7.0, "fast-simplification aggressiveness", min=0.0, max=10.0)
-    premerge_tol: float = param(3e-4, "planar pre-merge before the simplification (ours, "
+    premerge_tol: float = param(1e-3, "planar pre-merge before the simplification (ours, "
                                 "geometry/quadtree_mesh.py): blocks of pixel squares whose depth is "
-                                "planar within this relative deviation become a few triangles; 0 = "
-                                "the paper's full pixel grid", min=0.0, max=0.01)
+                                "planar within this relative deviation (1e-3: a tenth of Eq. 1's "
+                                "lambda) become a few triangles; 0 = the paper's full pixel grid",
+                                min=0.0, max=0.01)
 
 
 def run(ctx: StageContext, view: str) -> None:
@@ -77,7 +78,7 @@ def run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_mesh", help="quadric-simplified per-view meshes cut along occlusion edges",
-              config=ViewMeshConfig, version="3", run=run, per_view=True,
+              config=ViewMeshConfig, version="4", run=run, per_view=True,
               inputs=(REGISTERED_CAMERAS,),
               view_inputs=("{view_dir}/depth.npy", "{view_dir}/edges.png"),
               view_outputs=("{view_dir}/mesh.ply", "{view_dir}/mesh_report.json"),

@@ -11,6 +11,9 @@ from ibr_pipeline.geometry.grid_mesh import depth_error, grid_faces, grid_mesh, 
 from ibr_pipeline.geometry.normals import normals_from_depth, pixel_rays, points_from_depth
 from ibr_pipeline.geometry.quadtree_mesh import planar_leaves, quadtree_faces
 from ibr_pipeline.scene import Camera
+from ibr_pipeline.stages.view_mesh import ViewMeshConfig
+
+PREMERGE = ViewMeshConfig().premerge_tol  # the stage's default
 
 W, H = 131, 97   # not multiples of any block size: partial blocks at the right and bottom
 
@@ -112,7 +115,7 @@ def test_premerged_simplification_keeps_the_accuracy():
     cam, d = _scene()
     e = _edges(cam, d)
     v, f, gd, _ = grid_mesh(d, cam, e, return_depth=True)
-    vq, fq, _, _ = grid_mesh(d, cam, e, return_depth=True, premerge_tol=3e-4)
+    vq, fq, _, _ = grid_mesh(d, cam, e, return_depth=True, premerge_tol=PREMERGE)
     ra = simplify_adaptive(v, f, cam, d, 2000, 50, 0.002, mesh_depth=gd)
     rb = simplify_adaptive(vq, fq, cam, d, 2000, 50, 0.002, mesh_depth=gd)
     base = depth_error(gd, d)["score"]
@@ -166,6 +169,6 @@ def test_report_counts_the_grid_faces():
     cam, d = _scene()
     e = _edges(cam, d)
     g = grid_faces(d > 0, e)
-    _, fq, _, rep = grid_mesh(d, cam, e, return_depth=True, premerge_tol=3e-4)
+    _, fq, _, rep = grid_mesh(d, cam, e, return_depth=True, premerge_tol=PREMERGE)
     _, f0, _, rep0 = grid_mesh(d, cam, e, return_depth=True)
     assert rep["grid_faces"] == rep0["grid_faces"] == len(g) == len(f0) > len(fq)
