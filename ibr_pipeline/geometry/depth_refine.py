@@ -146,7 +146,7 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
                window: int = 7, band_radius: int = 8, min_consistent: int = 1,
                agree_rel: float = MVS_AGREE_REL, device: str = "cpu", check: str = "near",
                check_radius: int = 1, min_change: float = 1.5, guard_px: int = 3,
-               lambda_rel: float = de.LAMBDA_REL) -> MVSResult:
+               lambda_rel: float = de.LAMBDA_REL, protect: np.ndarray | None = None) -> MVSResult:
     """Step one of Xu §4.2.2 inside `mask` (see module doc).
 
     1. photometric: `mvs.plane_sweep` over a per-pixel band around the initial depth;
@@ -157,7 +157,11 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
     3. where the kept MVS depth differs from G's by at most `min_change` x Eq. 1's lambda, G's
        depth is kept (G is the more precise of the two on surfaces: MVS noise is 5-13 mm here);
     4. `edge_guard`: kept pixels within `guard_px` (the NCC window radius) of an Eq. 1 edge inside
-       the kept depth are dropped, so Eq. 2 re-interpolates them along colour edges.
+       the kept depth are dropped, so Eq. 2 re-interpolates them along colour edges — except
+       pixels of step 3 (G's depth, confirmed by the MVS) inside `protect` (H, W) bool, the caller's
+       "G is reliable here" region (the stage: farther than the guard from G's own edges and
+       rounded steps). Without that, MVS noise edges wiped out most of the confirmed G depth and
+       Eq. 2 refilled it from the seeds outside the mask, across texture.
     `depth` holds the result on `accepted` pixels (0 elsewhere)."""
     from . import mvs
 
@@ -184,6 +188,10 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
     keep_g = accepted & (np.abs(out - depth_init) <= min_change * lam)
     out[keep_g] = depth_init[keep_g]
     guard = edge_guard(out, guard_px, camera, lambda_rel) & accepted
+    if protect is not None:
+        if protect.shape != (h, w):
+            raise ValueError(f"protect must be {(h, w)}, got {protect.shape}")
+        guard &= ~(keep_g & protect)
     accepted &= ~guard
     out[~accepted] = 0.0
     return MVSResult(out, accepted, int(ok.sum()),

@@ -64,6 +64,9 @@ class ViewDepthConfig(StageConfig):
     rounded_strides: tuple[int, ...] = param((2, 3, 4), "half distances s of the rounded-step test "
                                              "(pixels at 320x240 on a 2 cm-voxel G, scaled with the image "
                                              "width x G's voxel size: ramp_scale)")
+    mvs_guard_keeps_g: bool = param(True, "the edge guard keeps G's depth where the MVS confirms it "
+                                    "(within mvs_min_change lambda) and G has no edge or rounded step "
+                                    "within the guard radius (ours, session 8; false = version 3)")
     rounded_min_rel: float = param(1.0, "rounded-step test threshold, fraction of Eq. 1's lambda",
                                    min=0.1, max=10.0)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
@@ -224,7 +227,7 @@ def _run(ctx: StageContext, view: str) -> None:
     t = time.perf_counter()
     det = dr.detect(depth0, cam, cfg.lambda_rel, cfg.mask_side_m, cfg.mask_min_half_px)
     mask = det.mask & (depth0 > 0)
-    rounded = np.zeros_like(mask)
+    rounded = rounded_all = np.zeros_like(mask)
     if cfg.rounded_steps:
         import cv2
 
@@ -232,8 +235,9 @@ def _run(ctx: StageContext, view: str) -> None:
         from ..geometry.depth_rounded import canny_edges, rounded_steps
         rs = ramp_scale(cam.width, _g_voxel(ws))
         strides = tuple(rs * int(s) for s in cfg.rounded_strides)
-        rounded = rounded_steps(depth0, det.points, det.normals, canny_edges(image), cfg.lambda_rel,
-                                strides, cfg.rounded_min_rel) & ~mask
+        rounded_all = rounded_steps(depth0, det.points, det.normals, canny_edges(image), cfg.lambda_rel,
+                                    strides, cfg.rounded_min_rel)
+        rounded = rounded_all & ~mask
         if rounded.any():
             f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
             s = max(strides)
@@ -251,6 +255,10 @@ def _run(ctx: StageContext, view: str) -> None:
         src_imgs = [read_image(ws.path(ctx.scene.view(s).image)) for s in src]
         src_cams = [cams[s] for s in src]
         src_depths = [_g_depth(scene, c) for c in src_cams]
+        protect = None
+        if cfg.mvs_guard_keeps_g:  # G is reliable away from its own edges and ramps
+            import scipy.ndimage as nd
+            protect = nd.distance_transform_edt(~(det.edge_pixels | rounded_all)) > px * cfg.mvs_edge_guard
         half = int(np.ceil(0.5 * cfg.mask_side_m * cam.K[0, 0] / max(float(np.median(depth0[mask])), 0.1)))
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
@@ -258,7 +266,7 @@ def _run(ctx: StageContext, view: str) -> None:
                             device=cfg.device, check=cfg.mvs_check,
                             check_radius=px * cfg.mvs_check_radius,
                             min_change=cfg.mvs_min_change, guard_px=px * cfg.mvs_edge_guard,
-                            lambda_rel=cfg.lambda_rel)
+                            lambda_rel=cfg.lambda_rel, protect=protect)
         accepted = res.accepted
         depth1[accepted] = res.depth[accepted]
         mvs_stats.update(res.stats, sources_used=src)

@@ -72,3 +72,35 @@ def test_edge_guard_only_inside_the_mvs_depth():
     assert not dr.edge_guard(d, 0, ref).any()
     flat = np.where(np.arange(W)[None, :] < 40, 1.5, 0.0) * np.ones((H, 1))
     assert not dr.edge_guard(flat, 3, ref).any()
+
+
+def test_guard_keeps_confirmed_g_depth_only_where_protected(monkeypatch):
+    """Step 4's guard around an MVS noise spike: without `protect` it drops the G depth the MVS
+    confirmed around the spike; with it, the confirmed G depth survives where protected and the
+    spike itself (an MVS depth, not G's) is still dropped."""
+    from types import SimpleNamespace
+
+    from ibr_pipeline.geometry import mvs
+
+    ref, src = _cams()
+    g = np.full((H, W), 1.0)                       # G: a wall at 1 m (lambda = 1 cm)
+    photo = g * (1 + 0.002)                        # the MVS agrees with G within 1.5 lambda...
+    photo[24, 20] = photo[24, 44] = 1.03           # ...but for two spikes 3 cm off (within 5 %)
+    monkeypatch.setattr(mvs, "plane_sweep", lambda *a, **k: SimpleNamespace(depth=photo, valid=np.ones((H, W), bool)))
+    img = np.zeros((H, W, 3))
+    mask = np.ones((H, W), bool)
+    kw = dict(guard_px=3, min_change=1.5, check_radius=1)
+    plain = dr.masked_mvs(img, ref, g, mask, [img], [src], [g], **kw)
+    protect = np.zeros((H, W), bool)
+    protect[:, :32] = True                         # G reliable on the left half only
+    prot = dr.masked_mvs(img, ref, g, mask, [img], [src], [g], protect=protect, **kw)
+    win = lambda x: (slice(21, 28), slice(x - 3, x + 4))  # noqa: E731  the guard's 7x7 window
+    for r in (plain, prot):
+        assert r.accepted[10, 20] and r.accepted[10, 44]                # away from the spikes: kept
+        assert not r.accepted[24, 20] and not r.accepted[24, 44]       # the spikes: dropped
+        assert not r.accepted[win(44)].any()                            # unprotected: all dropped
+    assert not plain.accepted[win(20)].any()
+    keep = prot.accepted[win(20)]
+    assert keep.sum() == 48 and np.allclose(prot.depth[win(20)][keep], 1.0)  # G's depth kept
+    with pytest.raises(ValueError):
+        dr.masked_mvs(img, ref, g, mask, [img], [src], [g], protect=protect[:, :10], **kw)
