@@ -63,7 +63,8 @@ def test_reflectance_cue_recovers_beta_and_rejects_a_diffuse_plane():
 def test_rerender_two_layers_beats_the_unsplit_image():
     """Bench `rerender` (issue #6 held-out item): with the true layers of view b, view a's pixels
     are predicted by I0_b(w(u, M0)) + R_b(w(u, M1)) far better than by I_b(w(u, M0))."""
-    from ibr_pipeline.bench.reflection import _psnr, rerender
+    from ibr_pipeline.bench.reflection import _psnr
+    from ibr_pipeline.bench.reflection_heldout import rerender
     beta = 0.3
     (a, b), cols = _scene(beta)
     got = rerender(a, b, beta * cols["b"])
@@ -77,7 +78,8 @@ def test_predict_perfect_reflection_bounds_the_gain():
     """Bench `predict`: a perfect reflection layer (k's surface layer + t's own reflection) is at
     least as good as k's true layers here, and on a diffuse plane (beta = 0) no split can gain
     anything over the unsplit warp: the layered, unsplit and perfect-R predictions coincide."""
-    from ibr_pipeline.bench.reflection import _psnr, predict
+    from ibr_pipeline.bench.reflection import _psnr
+    from ibr_pipeline.bench.reflection_heldout import predict
     for beta, min_gain in ((0.3, 10.0), (0.0, None)):
         (a, b), cols = _scene(beta)
         sel = a.mask & (a.D1 > 0)
@@ -98,7 +100,7 @@ def test_predict_perfect_reflection_bounds_the_gain():
 def test_blend_predictions_normalises_over_valid_views():
     """The renderer-like blend: per pixel, the weighted mean over the views valid there (the same
     weights for every kind); pixels no view covers are left out."""
-    from ibr_pipeline.bench.reflection import blend_predictions
+    from ibr_pipeline.bench.reflection_heldout import blend_predictions
     n = 100
     tgt = np.full((n, 3), 0.5)
     ok1 = np.arange(n) < 70

@@ -213,10 +213,11 @@ def test_stage_writes_m1_moved_along_the_rays():
 
 
 def test_rerender_with_own_m1_offsets():
-    """bench.reflection.rerender_own: predicting view t from k's layers through k's own M1 is
+    """bench.reflection_heldout.rerender_own: predicting view t from k's layers through k's own M1 is
     exact-ish for exact geometry, degraded by a 5 % bump in k's M1, and restored by the offsets
     that undo the bump (what the written M1.ply of k renders)."""
-    from ibr_pipeline.bench.reflection import _psnr, rerender_own
+    from ibr_pipeline.bench.reflection import _psnr
+    from ibr_pipeline.bench.reflection_heldout import rerender_own
     k, nbs, D1_true = _scene(lambda u, v: 0.6 * _bump(u, v))  # 3 %: within the 5 % visibility test
     t = nbs[0]
     X1t = k.camera.center + (k.X1 - k.camera.center) * (D1_true / k.D1)[..., None]
@@ -356,9 +357,10 @@ def test_optimised_m0_moves_vertices_along_the_rays():
 
 
 def test_rerender_through_own_m0_offsets():
-    """bench.reflection.rerender_own with own_m0: the surface layer of k seen through t's pixels
+    """bench.reflection_heldout.rerender_own with own_m0: the surface layer of k seen through t's pixels
     on k's own M0 -- degraded by a 3 % bump in k's M0, restored by the offsets undoing it."""
-    from ibr_pipeline.bench.reflection import _psnr, rerender_own
+    from ibr_pipeline.bench.reflection import _psnr
+    from ibr_pipeline.bench.reflection_heldout import rerender_own
     k0, nbs, _ = _scene()
     k = _bumped_m0(k0, lambda u, v: 0.6 * _bump(u, v))
     t = nbs[0]
