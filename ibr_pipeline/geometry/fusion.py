@@ -187,7 +187,7 @@ def auto_voxel_size(samples: Iterable[tuple[np.ndarray, Camera]], metric: bool =
             raise ValueError(f"depth must be (h, w), got {d.shape}")
         ok = np.isfinite(d) & (d > 0)
         if ok.any():
-            fp.append(float(np.median(d[ok])) / (cam.K[0, 0] * d.shape[1] / cam.width))
+            fp.append(float(np.median(d[ok])) / cam.resized(d.shape[1], d.shape[0]).K[0, 0])
     if not fp:
         raise ValueError("no depth in any frame: cannot choose a voxel size")
     v = AUTO_VOXEL_FOOTPRINTS * float(np.median(fp))

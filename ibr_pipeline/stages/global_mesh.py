@@ -317,7 +317,6 @@ def run(ctx: StageContext) -> None:
     if dense == "rgbd":
         frames = _depth_frames(ctx, cams, depth_views, reflectors, view_masks, stats)
     else:
-
         def _mvs_frames():
             for n, (d, c) in depths.items():
                 if reflectors:

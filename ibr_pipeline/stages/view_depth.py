@@ -223,6 +223,7 @@ def _run(ctx: StageContext, view: str) -> None:
     # fraction at other sizes (at 640x480 the 2 cm TSDF ramps span twice as many pixels); the
     # rounded-step strides follow the ramps themselves: width x G's voxel size (ramp_scale)
     px = pixel_scale(cam.width)
+    rs = ramp_scale(cam.width, _g_voxel(ws))
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
     t = time.perf_counter()
     det = dr.detect(depth0, cam, cfg.lambda_rel, cfg.mask_side_m, cfg.mask_min_half_px)
@@ -233,7 +234,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
         from ..geometry.depth_edges import refinement_mask
         from ..geometry.depth_rounded import canny_edges, rounded_steps
-        rs = ramp_scale(cam.width, _g_voxel(ws))
         strides = tuple(rs * int(s) for s in cfg.rounded_strides)
         rounded_all = rounded_steps(depth0, det.points, det.normals, canny_edges(image), cfg.lambda_rel,
                                     strides, cfg.rounded_min_rel)
@@ -297,7 +297,7 @@ def _run(ctx: StageContext, view: str) -> None:
     ms = 1000 * (time.perf_counter() - t0)
     ws.write_json(f"{vd}/depth_report.json", {
         "view": view, "size": [cam.width, cam.height], "pixel_scale": px,
-        "ramp_scale": ramp_scale(cam.width, _g_voxel(ws)),
+        "ramp_scale": rs,
         "edge_pixels_init": int(det.edge_pixels.sum()), "edge_pixels": int(final.edge_pixels.sum()),
         "mask_pixels": int(mask.sum()), "rounded_step_pixels": int(rounded.sum()), "mvs_accepted": int(accepted.sum()),
         "interpolated": int(filled.sum()),
