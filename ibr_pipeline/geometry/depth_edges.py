@@ -37,6 +37,15 @@ class PairEdges:
         out[1:, :] |= self.down
         return out
 
+    def between_surfaces(self, valid: np.ndarray) -> "PairEdges":
+        """The edges whose two pixels both have depth (`valid` (H, W) bool): occlusion edges and
+        creases, without the borders of regions with no depth."""
+        v = np.asarray(valid, bool)
+        if v.shape != (self.down.shape[0] + 1, self.right.shape[1] + 1):
+            raise ValueError(f"valid must be {(self.down.shape[0] + 1, self.right.shape[1] + 1)}, got {v.shape}")
+        return PairEdges(self.right & v[:, :-1] & v[:, 1:], self.down & v[:-1, :] & v[1:, :],
+                         self.diag & v[:-1, :-1] & v[1:, 1:], self.anti & v[:-1, 1:] & v[1:, :-1])
+
 
 def planar_distance(pi: np.ndarray, pj: np.ndarray, ni: np.ndarray, nj: np.ndarray) -> np.ndarray:
     """Eq. 1: max(|(v_i - v_j) . n_i|, |(v_i - v_j) . n_j|) for arrays of shape (..., 3)."""

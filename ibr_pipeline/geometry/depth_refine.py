@@ -146,7 +146,8 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
                window: int = 7, band_radius: int = 8, min_consistent: int = 1,
                agree_rel: float = MVS_AGREE_REL, device: str = "cpu", check: str = "near",
                check_radius: int = 1, min_change: float = 1.5, guard_px: int = 3,
-               lambda_rel: float = de.LAMBDA_REL, protect: np.ndarray | None = None) -> MVSResult:
+               lambda_rel: float = de.LAMBDA_REL, protect: np.ndarray | None = None,
+               trust_g: np.ndarray | None = None) -> MVSResult:
     """Step one of Xu §4.2.2 inside `mask` (see module doc).
 
     1. photometric: `mvs.plane_sweep` over a per-pixel band around the initial depth;
@@ -162,6 +163,10 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
        "G is reliable here" region (the stage: farther than the guard from G's own edges and
        rounded steps). Without that, MVS noise edges wiped out most of the confirmed G depth and
        Eq. 2 refilled it from the seeds outside the mask, across texture.
+    `trust_g` (H, W) bool, optional: mask pixels where the caller trusts G outright (the stage: the
+    same far-from-G's-edges region). They are not swept and are accepted with G's depth: far from
+    its edges G is exact to ~1.5 mm, while the 5 % check passes MVS depths several centimetres
+    off (5 % of 2 m is 10 cm) that Eq. 2 then spread to their neighbours as seeds.
     `depth` holds the result on `accepted` pixels (0 elsewhere)."""
     from . import mvs
 
@@ -170,10 +175,16 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
         raise ValueError(f"image {image.shape}, mask {mask.shape} and depth {depth_init.shape} differ")
     if check not in ("near", "roundtrip"):
         raise ValueError(f"check must be 'near' or 'roundtrip', got {check!r}")
-    dmin, dmax, ok = search_band(depth_init, mask, band_radius)
+    for name, a in (("protect", protect), ("trust_g", trust_g)):
+        if a is not None and a.shape != (h, w):
+            raise ValueError(f"{name} must be {(h, w)}, got {a.shape}")
+    trusted = (mask & trust_g & (depth_init > 0)) if trust_g is not None else np.zeros((h, w), bool)
+    dmin, dmax, ok = search_band(depth_init, mask & ~trusted, band_radius)
     out = np.zeros((h, w))
     if not ok.any() or not src_images:
-        return MVSResult(out, np.zeros((h, w), bool), 0, {"sources": len(src_images)})
+        out[trusted] = depth_init[trusted]
+        return MVSResult(out, trusted.copy(), 0, {"sources": len(src_images), "trusted_g": int(trusted.sum()),
+                                                  "accepted": int(trusted.sum())})
     sw = mvs.plane_sweep(image, camera, src_images, src_cams, dmin, dmax, num_depths=num_depths,
                          window=window, mask=ok, device=device)
     photo = np.where(ok & sw.valid, sw.depth, 0.0)
@@ -187,15 +198,15 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
     lam = lambda_rel * np.maximum(1.0, depth_init)  # Eq. 1's lambda
     keep_g = accepted & (np.abs(out - depth_init) <= min_change * lam)
     out[keep_g] = depth_init[keep_g]
+    out[trusted] = depth_init[trusted]   # for the guard's edges: the trusted pixels' final depth
     guard = edge_guard(out, guard_px, camera, lambda_rel) & accepted
     if protect is not None:
-        if protect.shape != (h, w):
-            raise ValueError(f"protect must be {(h, w)}, got {protect.shape}")
         guard &= ~(keep_g & protect)
     accepted &= ~guard
+    accepted |= trusted
     out[~accepted] = 0.0
     return MVSResult(out, accepted, int(ok.sum()),
-                     {"photometric_valid": int((photo > 0).sum()),
+                     {"photometric_valid": int((photo > 0).sum()), "trusted_g": int(trusted.sum()),
                       "consistent": int(((photo > 0) & (n_ok >= min_consistent)).sum()),
                       "kept_g": int(keep_g.sum()), "guard_dropped": int(guard.sum()),
                       "accepted": int(accepted.sum()), "sources": len(src_images)})
@@ -203,13 +214,13 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
 
 def refine(depth: np.ndarray, camera: Camera, image: np.ndarray, region: np.ndarray,
            strokes: np.ndarray | None = None, cost_base: float = 0.05, cost_edge: float = 5.0,
-           k: int = geo.K_NEIGHBOURS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Eq. 2 over `region` of `depth` (camera `camera`, colour `image`). Returns (refined depth,
-    filled (H, W) bool, colour edge map)."""
+           k: int = geo.K_NEIGHBOURS, boundary_radius: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eq. 2 over `region` of `depth` (camera `camera`, colour `image`; `boundary_radius`: see
+    `geodesic.colour_edge_map`). Returns (refined depth, filled (H, W) bool, colour edge map)."""
     depth = np.asarray(depth, dtype=np.float64)
     P = points_from_depth(depth, camera.K)
     N = normals_from_points(P, depth > 0)
-    edges = geo.colour_edge_map(image, strokes)
+    edges = geo.colour_edge_map(image, strokes, boundary_radius=boundary_radius)
     cost = geo.edge_cost(edges, cost_base, cost_edge)
     rays = pixel_rays(camera.K, *depth.shape)
     new, filled = geo.interpolate_depth(depth, P, N, rays, cost, region, k)

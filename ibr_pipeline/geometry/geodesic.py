@@ -9,8 +9,13 @@ j's 3D point with j's normal.
 
 Colour edges: the paper uses structured-forest edges (Dollár & Zitnick 2015), whose model file is not
 available offline. `colour_edge_map` is model-free: the per-channel Sobel gradient magnitude of the
-(gamma-encoded) image, normalised by a robust scale, combined with Canny edges (cv2). User strokes
-(an optional mask of occlusion edges the user drew) are added at full edge strength.
+(gamma-encoded) image, normalised by a robust scale, combined with Canny edges (cv2). What the
+learned forest adds is telling object boundaries from texture; our model-free stand-in for that is
+the oriented half-disc colour gradient of Martin, Fowlkes & Malik 2004 (`boundary_strength`, the
+colour/brightness cue of Pb without its learned weights): across an outline the mean colours of the
+two half discs differ, across a texture dot smaller than the disc they barely do, so with
+`boundary_radius` > 0 each edge pixel is weighted by it and texture becomes cheap to cross. User
+strokes (an optional mask of occlusion edges the user drew) are added at full edge strength.
 """
 from __future__ import annotations
 
@@ -33,25 +38,66 @@ def encode_for_edges(image: np.ndarray, blur_sigma: float) -> np.ndarray:
     return enc
 
 
+def _robust_unit(mag: np.ndarray) -> np.ndarray:
+    """`mag` / max(3 x its 90th percentile, half its 99.5th), clipped to [0, 1]: the 90th percentile
+    follows the image's contrast, the 99.5th keeps a lone strong edge from saturating a wide band."""
+    scale = max(3.0 * float(np.percentile(mag, 90)), 0.5 * float(np.percentile(mag, 99.5)), 1e-3)
+    return np.clip(mag / scale, 0.0, 1.0)
+
+
+def halfdisc_kernels(radius: int, orientations: int = 8) -> list[np.ndarray]:
+    """Correlation kernels (2r+1, 2r+1) float32, one per orientation theta = k pi / n: the mean over
+    the half disc on one side of the line through the centre at angle theta minus the mean over the
+    other half (pixels within half a pixel of the line belong to neither)."""
+    if radius < 1 or orientations < 1:
+        raise ValueError(f"need radius >= 1 and orientations >= 1, got {radius}, {orientations}")
+    yy, xx = np.mgrid[-radius:radius + 1, -radius:radius + 1].astype(np.float64)
+    disc = xx ** 2 + yy ** 2 <= radius * radius + 0.5
+    out = []
+    for k in range(orientations):
+        t = np.pi * k / orientations
+        side = -np.sin(t) * xx + np.cos(t) * yy   # signed distance to the line
+        a, b = disc & (side > 0.5), disc & (side < -0.5)
+        out.append((a / a.sum() - b / b.sum()).astype(np.float32))
+    return out
+
+
+def boundary_strength(encoded: np.ndarray, radius: int, orientations: int = 8) -> np.ndarray:
+    """(H, W) float32: max over orientations of the Euclidean distance between the mean colours of
+    the two half discs of `radius` px around each pixel (Martin, Fowlkes & Malik 2004, colour and
+    brightness gradient), on an encoded image (H, W, 3) from `encode_for_edges`."""
+    import cv2
+
+    enc = np.asarray(encoded, dtype=np.float32)
+    if enc.ndim != 3 or enc.shape[2] != 3:
+        raise ValueError(f"encoded image must be (H, W, 3), got {enc.shape}")
+    best = np.zeros(enc.shape[:2], np.float32)
+    for k in halfdisc_kernels(radius, orientations):
+        d = cv2.filter2D(enc, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+        best = np.maximum(best, np.sqrt((d * d).sum(axis=2)))
+    return best
+
+
 def colour_edge_map(image: np.ndarray, strokes: np.ndarray | None = None,
-                    blur_sigma: float = 1.0, canny: tuple[int, int] = (40, 100)) -> np.ndarray:
+                    blur_sigma: float = 1.0, canny: tuple[int, int] = (40, 100),
+                    boundary_radius: int = 0) -> np.ndarray:
     """(H, W) float32 edge strength in [0, 1] of a linear RGB image (H, W, 3) in [0, 1].
 
     max over channels of the Sobel magnitude of sqrt(image) (a display-like encoding, so dark
-    regions are not edge-free), divided by max(3 x its 90th percentile, half its 99.5th) and clipped; the maximum with
-    Canny edges (thresholds `canny` on the 8-bit encoded grey image); strokes add 1."""
+    regions are not edge-free), robustly normalised (`_robust_unit`); the maximum with Canny edges
+    (thresholds `canny` on the 8-bit encoded grey image); with `boundary_radius` r > 0, times the
+    robustly normalised `boundary_strength` at radius r (of the unblurred encoding), which keeps
+    outlines and fades texture; strokes add 1."""
     import cv2
 
     enc = encode_for_edges(image, blur_sigma)
     gx = cv2.Sobel(enc, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(enc, cv2.CV_32F, 0, 1, ksize=3)
-    mag = np.sqrt(gx * gx + gy * gy).max(axis=2)
-    # robust scale: 3 x the 90th percentile, but never below half the 99.5th (so a lone strong edge
-    # keeps its profile instead of saturating a wide band)
-    scale = max(3.0 * float(np.percentile(mag, 90)), 0.5 * float(np.percentile(mag, 99.5)), 1e-3)
-    edges = np.clip(mag / scale, 0.0, 1.0)
+    edges = _robust_unit(np.sqrt(gx * gx + gy * gy).max(axis=2))
     grey = cv2.cvtColor((enc * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
     edges = np.maximum(edges, cv2.Canny(grey, *canny).astype(np.float32) / 255.0)
+    if boundary_radius > 0:
+        edges = edges * _robust_unit(boundary_strength(encode_for_edges(image, 0.0), int(boundary_radius)))
     if strokes is not None:
         s = np.asarray(strokes, bool)
         if s.shape != edges.shape:

@@ -51,6 +51,13 @@ class ViewDepthConfig(StageConfig):
     cost_base: float = param(0.05, "geodesic cost per pixel step on a flat colour region", min=1e-4, max=10.0)
     cost_edge: float = param(15.0, "extra geodesic cost per pixel step across a full-strength colour "
                              "edge (w = exp(-d_g), Eq. 2)", min=0.0, max=1000.0)
+    edge_boundary_radius: int = param(4, "Eq. 2 cost map: weight each colour edge by the oriented "
+                                      "half-disc colour gradient of this radius (pixels at 320x240, "
+                                      "scaled with the width; Martin et al. 2004), so texture inside a "
+                                      "surface is cheap to cross and outlines are not (our model-free "
+                                      "stand-in for the paper's structured-forest boundaries; "
+                                      "geometry/geodesic.py); 0 = plain Sobel + Canny (version 4)",
+                                      min=0, max=32)
     edge_barrier: bool = param(False, "Eq. 2 cost map: add the Eq. 1 depth edges of the depth "
                                "entering Eq. 2 (G after the MVS step) like user strokes, so the "
                                "interpolation does not take neighbours from across an occlusion "
@@ -64,9 +71,18 @@ class ViewDepthConfig(StageConfig):
     rounded_strides: tuple[int, ...] = param((2, 3, 4), "half distances s of the rounded-step test "
                                              "(pixels at 320x240 on a 2 cm-voxel G, scaled with the image "
                                              "width x G's voxel size: ramp_scale)")
-    mvs_guard_keeps_g: bool = param(True, "the edge guard keeps G's depth where the MVS confirms it "
-                                    "(within mvs_min_change lambda) and G has no edge or rounded step "
-                                    "within the guard radius (ours, session 8; false = version 3)")
+    g_trust: str = param("far", "where G's depth is trusted inside the mask (ours): 'far' = every mask "
+                         "pixel farther than g_trust_px from G's own Eq. 1 edges between two "
+                         "surfaces and its rounded steps keeps G's depth and is not swept (version "
+                         "5: the 5 per cent check "
+                         "let MVS depths centimetres off through there, and Eq. 2 spread them); "
+                         "'confirmed' = only where the MVS confirmed G, against the guard (version "
+                         "4); 'none' = version 3", choices=("far", "confirmed", "none"))
+    g_trust_px: int = param(0, "g_trust 'far': distance from G's edges and rounded steps beyond which "
+                            "G is trusted, pixels on a 2 cm-voxel G at 320x240 / 1 cm at 640x480 "
+                            "(times ramp_scale otherwise); 0 = automatic: 6 px below 480 px wide, "
+                            "4 px from 480 (a measured sweep, docs/BENCHMARKS.md: the finer "
+                            "image's MVS corrects closer to G's edges)", min=0, max=64)
     rounded_min_rel: float = param(1.0, "rounded-step test threshold, fraction of Eq. 1's lambda",
                                    min=0.1, max=10.0)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
@@ -103,6 +119,12 @@ def ramp_scale(width: int, g_voxel: float) -> int:
     voxels wide, i.e. `voxel * f / z` pixels, so the strides follow width x voxel relative to the
     2 cm G at 320x240 they were tuned on (1 for global_mesh's automatic 1 cm at 640x480 too)."""
     return max(1, int(round(width / 320 * g_voxel / G_VOXEL_TUNED)))
+
+
+def g_trust_auto(width: int) -> int:
+    """Automatic g_trust_px: 6 px below 480 px wide, 4 px from 480 (sweep of 3-10 px on the sample
+    and full-size mirror_room benches; docs/BENCHMARKS.md)."""
+    return 6 if width < 480 else 4
 
 
 def _g_voxel(ws) -> float:
@@ -255,10 +277,15 @@ def _run(ctx: StageContext, view: str) -> None:
         src_imgs = [read_image(ws.path(ctx.scene.view(s).image)) for s in src]
         src_cams = [cams[s] for s in src]
         src_depths = [_g_depth(scene, c) for c in src_cams]
-        protect = None
-        if cfg.mvs_guard_keeps_g:  # G is reliable away from its own edges and ramps
+        protect = trust = None
+        if cfg.g_trust != "none":  # G is reliable away from its own edges and ramps
             import scipy.ndimage as nd
-            protect = nd.distance_transform_edt(~(det.edge_pixels | rounded_all)) > px * cfg.mvs_edge_guard
+            dist_g = nd.distance_transform_edt(~(det.edge_pixels | rounded_all))
+            protect = dist_g > px * cfg.mvs_edge_guard
+            if cfg.g_trust == "far":   # G misplaces an edge by about its ramp width (ramp_scale);
+                # the borders of G's holes (grazing faces, unseen areas) are no misplaced edge
+                surf = det.edges.between_surfaces(depth0 > 0).pixels()
+                trust = nd.distance_transform_edt(~(surf | rounded_all)) > rs * (cfg.g_trust_px or g_trust_auto(cam.width))
         half = int(np.ceil(0.5 * cfg.mask_side_m * cam.K[0, 0] / max(float(np.median(depth0[mask])), 0.1)))
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
@@ -266,7 +293,8 @@ def _run(ctx: StageContext, view: str) -> None:
                             device=cfg.device, check=cfg.mvs_check,
                             check_radius=px * cfg.mvs_check_radius,
                             min_change=cfg.mvs_min_change, guard_px=px * cfg.mvs_edge_guard,
-                            lambda_rel=cfg.lambda_rel, protect=protect)
+                            lambda_rel=cfg.lambda_rel, protect=protect,
+                            trust_g=trust)
         accepted = res.accepted
         depth1[accepted] = res.depth[accepted]
         mvs_stats.update(res.stats, sources_used=src)
@@ -279,7 +307,7 @@ def _run(ctx: StageContext, view: str) -> None:
         e = dr.detect(depth1, cam, cfg.lambda_rel, with_mask=False).edge_pixels
         barrier = e if strokes is None else (strokes | e)
     depth2, filled, _ = dr.refine(depth1, cam, image, region, barrier, cfg.cost_base, cfg.cost_edge,
-                                  cfg.neighbours)
+                                  cfg.neighbours, boundary_radius=px * cfg.edge_boundary_radius)
     timings["interp_ms"] = 1000 * (time.perf_counter() - t)
     if not np.all(np.isfinite(depth2)):
         raise RuntimeError("refined depth has non-finite values")
@@ -308,6 +336,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="4", run=run, per_view=True,
+              config=ViewDepthConfig, version="5", run=run, per_view=True,
               inputs=(REGISTERED_CAMERAS, "global/mesh.ply"), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)
