@@ -147,7 +147,7 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
                agree_rel: float = MVS_AGREE_REL, device: str = "cpu", check: str = "near",
                check_radius: int = 1, min_change: float = 1.5, guard_px: int = 3,
                lambda_rel: float = de.LAMBDA_REL, protect: np.ndarray | None = None,
-               trust_g: np.ndarray | None = None) -> MVSResult:
+               trust_g: np.ndarray | None = None, distrust_g: np.ndarray | None = None) -> MVSResult:
     """Step one of Xu §4.2.2 inside `mask` (see module doc).
 
     1. photometric: `mvs.plane_sweep` over a per-pixel band around the initial depth;
@@ -167,6 +167,9 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
     same far-from-G's-edges region). They are not swept and are accepted with G's depth: far from
     its edges G is exact to ~1.5 mm, while the 5 % check passes MVS depths several centimetres
     off (5 % of 2 m is 10 cm) that Eq. 2 then spread to their neighbours as seeds.
+    `distrust_g` (H, W) bool, optional: pixels that would keep G's depth (trusted, or confirmed by
+    step 3) are not accepted there, so Eq. 2 re-interpolates them (the stage: around G's rounded
+    steps, whose ramp lies within 1.5 lambda of both plateaus for a step of up to 3 lambda).
     `depth` holds the result on `accepted` pixels (0 elsewhere)."""
     from . import mvs
 
@@ -175,13 +178,15 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
         raise ValueError(f"image {image.shape}, mask {mask.shape} and depth {depth_init.shape} differ")
     if check not in ("near", "roundtrip"):
         raise ValueError(f"check must be 'near' or 'roundtrip', got {check!r}")
-    for name, a in (("protect", protect), ("trust_g", trust_g)):
+    for name, a in (("protect", protect), ("trust_g", trust_g), ("distrust_g", distrust_g)):
         if a is not None and a.shape != (h, w):
             raise ValueError(f"{name} must be {(h, w)}, got {a.shape}")
     trusted = (mask & trust_g & (depth_init > 0)) if trust_g is not None else np.zeros((h, w), bool)
     dmin, dmax, ok = search_band(depth_init, mask & ~trusted, band_radius)
     out = np.zeros((h, w))
     if not ok.any() or not src_images:
+        if distrust_g is not None:
+            trusted = trusted & ~distrust_g
         out[trusted] = depth_init[trusted]
         return MVSResult(out, trusted.copy(), 0, {"sources": len(src_images), "trusted_g": int(trusted.sum()),
                                                   "accepted": int(trusted.sum())})
@@ -204,11 +209,17 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
         guard &= ~(keep_g & protect)
     accepted &= ~guard
     accepted |= trusted
+    distrusted = 0
+    if distrust_g is not None:
+        drop = accepted & distrust_g & (keep_g | trusted)
+        distrusted = int(drop.sum())
+        accepted &= ~drop
     out[~accepted] = 0.0
     return MVSResult(out, accepted, int(ok.sum()),
                      {"photometric_valid": int((photo > 0).sum()), "trusted_g": int(trusted.sum()),
                       "consistent": int(((photo > 0) & (n_ok >= min_consistent)).sum()),
                       "kept_g": int(keep_g.sum()), "guard_dropped": int(guard.sum()),
+                      "distrusted_g": distrusted,
                       "accepted": int(accepted.sum()), "sources": len(src_images)})
 
 

@@ -83,6 +83,11 @@ class ViewDepthConfig(StageConfig):
                             "(times ramp_scale otherwise); 0 = automatic: 6 px below 480 px wide, "
                             "4 px from 480 (a measured sweep, docs/BENCHMARKS.md: the finer "
                             "image's MVS corrects closer to G's edges)", min=0, max=64)
+    ramp_zone_px: int = param(8, "within this distance of a rounded step (pixels at 320x240 on a 2 cm-"
+                              "voxel G, times ramp_scale) G's depth is not kept even where the MVS "
+                              "confirms it within mvs_min_change lambda (a ramp of a 1-3 lambda step "
+                              "is within that of both plateaus): Eq. 2 re-interpolates it from the "
+                              "plateaus along colour edges (version 5, ours); 0 = off", min=0, max=64)
     rounded_min_rel: float = param(1.0, "rounded-step test threshold, fraction of Eq. 1's lambda",
                                    min=0.1, max=10.0)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
@@ -286,6 +291,10 @@ def _run(ctx: StageContext, view: str) -> None:
                 # the borders of G's holes (grazing faces, unseen areas) are no misplaced edge
                 surf = det.edges.between_surfaces(depth0 > 0).pixels()
                 trust = nd.distance_transform_edt(~(surf | rounded_all)) > rs * (cfg.g_trust_px or g_trust_auto(cam.width))
+        ramp = None
+        if cfg.ramp_zone_px > 0 and rounded_all.any():  # G's ramps are what is wrong there
+            import scipy.ndimage as nd
+            ramp = nd.distance_transform_edt(~rounded_all) <= rs * cfg.ramp_zone_px
         half = int(np.ceil(0.5 * cfg.mask_side_m * cam.K[0, 0] / max(float(np.median(depth0[mask])), 0.1)))
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
@@ -294,7 +303,7 @@ def _run(ctx: StageContext, view: str) -> None:
                             check_radius=px * cfg.mvs_check_radius,
                             min_change=cfg.mvs_min_change, guard_px=px * cfg.mvs_edge_guard,
                             lambda_rel=cfg.lambda_rel, protect=protect,
-                            trust_g=trust)
+                            trust_g=trust, distrust_g=ramp)
         accepted = res.accepted
         depth1[accepted] = res.depth[accepted]
         mvs_stats.update(res.stats, sources_used=src)

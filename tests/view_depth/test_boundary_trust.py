@@ -10,7 +10,7 @@ import pytest
 
 from ibr_pipeline.geometry import depth_refine as dr
 from ibr_pipeline.geometry import geodesic as geo
-from ibr_pipeline.geometry.normals import normals_from_depth, pixel_rays, points_from_depth
+from ibr_pipeline.geometry.normals import normals_from_depth, points_from_depth
 from ibr_pipeline.scene import Camera
 
 W, H = 96, 64
@@ -121,6 +121,7 @@ def test_g_trust_auto_and_config():
     assert g_trust_auto(320) == 6 and g_trust_auto(640) == 4
     cfg = ViewDepthConfig()
     assert cfg.g_trust == "far" and cfg.g_trust_px == 0 and cfg.edge_boundary_radius == 4
+    assert cfg.ramp_zone_px == 8
     with pytest.raises(ConfigError):
         build_config(ViewDepthConfig, "view_depth", {"g_trust": "always"})
     with pytest.raises(ConfigError):
@@ -142,3 +143,33 @@ def test_between_surfaces_drops_hole_borders():
     assert s[:, 29:31].all() and not s[:, 60:].any()     # only the occlusion edge is left
     with pytest.raises(ValueError):
         e.between_surfaces(np.ones((H, W - 1), bool))
+
+
+def test_distrust_g_drops_g_depth_on_ramps_but_keeps_mvs_corrections(monkeypatch):
+    """Around a rounded step G's ramp lies within mvs_min_change lambda of the MVS depth, so step 3
+    would keep it; `distrust_g` sends those pixels (and trusted ones) to Eq. 2 instead, while an
+    MVS depth that differs from G stays accepted."""
+    from ibr_pipeline.geometry import mvs
+
+    cam = _cam()
+    src = Camera(cam.K, np.array([[1, 0, 0, -0.2], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], float), W, H)
+    g = np.full((H, W), 1.0)
+    photo = g * 1.002                      # confirms G within 1.5 lambda...
+    photo[:, 60:] = 1.03                   # ...except right of x = 60: a 3 cm correction
+    monkeypatch.setattr(mvs, "plane_sweep",
+                        lambda *a, **k: SimpleNamespace(depth=photo, valid=np.ones((H, W), bool)))
+    img = np.zeros((H, W, 3))
+    mask = np.ones((H, W), bool)
+    trust = np.zeros((H, W), bool)
+    trust[:, :20] = True
+    zone = np.zeros((H, W), bool)
+    zone[:, 10:70] = True
+    kw = dict(guard_px=0, min_change=1.5, check_radius=1)
+    plain = dr.masked_mvs(img, cam, g, mask, [img], [src], [g], trust_g=trust, **kw)
+    r = dr.masked_mvs(img, cam, g, mask, [img], [src], [g], trust_g=trust, distrust_g=zone, **kw)
+    assert plain.accepted[:, 10:60].all()                       # without: G kept (trusted / confirmed)
+    assert not r.accepted[:, 10:60].any()                       # with: left to Eq. 2
+    assert r.accepted[:, :10].all() and np.allclose(r.depth[:, :10], 1.0)   # outside the zone: as before
+    corr = r.accepted[:, 60:70]
+    assert corr.any() and np.allclose(r.depth[:, 60:70][corr], 1.03)        # MVS corrections stay
+    assert r.stats["distrusted_g"] == int((plain.accepted & zone & (plain.depth == g)).sum())
