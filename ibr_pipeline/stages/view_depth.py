@@ -81,8 +81,8 @@ class ViewDepthConfig(StageConfig):
     g_trust_px: int = param(0, "g_trust 'far': distance from G's edges and rounded steps beyond which "
                             "G is trusted, pixels on a 2 cm-voxel G at 320x240 / 1 cm at 640x480 "
                             "(times ramp_scale otherwise); 0 = automatic: 6 px below 480 px wide, "
-                            "4 px from 480 (a measured sweep, docs/BENCHMARKS.md: the finer "
-                            "image's MVS corrects closer to G's edges)", min=0, max=64)
+                            "4 px from 480 (a sweep, docs/VIEW_DEPTH.md: the finer image's MVS "
+                            "corrects closer to G's edges)", min=0, max=64)
     ramp_zone_px: int = param(8, "within this distance of a rounded step (pixels at 320x240 on a 2 cm-"
                               "voxel G, times ramp_scale) G's depth is not kept even where the MVS "
                               "confirms it within mvs_min_change lambda (a ramp of a 1-3 lambda step "
@@ -127,8 +127,8 @@ def ramp_scale(width: int, g_voxel: float) -> int:
 
 
 def g_trust_auto(width: int) -> int:
-    """Automatic g_trust_px: 6 px below 480 px wide, 4 px from 480 (sweep of 3-10 px on the sample
-    and full-size mirror_room benches; docs/BENCHMARKS.md)."""
+    """Automatic g_trust_px: 6 px below 480 px wide, 4 px from 480 (the best of a throw-away sweep of
+    3-10 px on every 4th view of the sample and full-size mirror_room benches; docs/VIEW_DEPTH.md)."""
     return 6 if width < 480 else 4
 
 
@@ -282,18 +282,16 @@ def _run(ctx: StageContext, view: str) -> None:
         src_imgs = [read_image(ws.path(ctx.scene.view(s).image)) for s in src]
         src_cams = [cams[s] for s in src]
         src_depths = [_g_depth(scene, c) for c in src_cams]
-        protect = trust = None
+        import scipy.ndimage as nd
+        protect = trust = ramp = None
         if cfg.g_trust != "none":  # G is reliable away from its own edges and ramps
-            import scipy.ndimage as nd
             dist_g = nd.distance_transform_edt(~(det.edge_pixels | rounded_all))
             protect = dist_g > px * cfg.mvs_edge_guard
             if cfg.g_trust == "far":   # G misplaces an edge by about its ramp width (ramp_scale);
                 # the borders of G's holes (grazing faces, unseen areas) are no misplaced edge
                 surf = det.edges.between_surfaces(depth0 > 0).pixels()
                 trust = nd.distance_transform_edt(~(surf | rounded_all)) > rs * (cfg.g_trust_px or g_trust_auto(cam.width))
-        ramp = None
         if cfg.ramp_zone_px > 0 and rounded_all.any():  # G's ramps are what is wrong there
-            import scipy.ndimage as nd
             ramp = nd.distance_transform_edt(~rounded_all) <= rs * cfg.ramp_zone_px
         half = int(np.ceil(0.5 * cfg.mask_side_m * cam.K[0, 0] / max(float(np.median(depth0[mask])), 0.1)))
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
