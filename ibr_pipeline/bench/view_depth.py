@@ -9,8 +9,9 @@ rounded and misplaced by up to a voxel. Measures (targets from issue #5): MAE of
 refined depth within 5 px of a GT Eq. 1 depth edge and elsewhere; recall of GT edge pixels by
 detected edges within 2 px (mean over views, and pooled over all GT edge pixels, the
 issue's literal wording), plus the precision (detected edge pixels within 2 px of a GT edge); mesh fidelity (simplified mesh vs grid mesh vs refined depth, median
-and edge-band error); per-view timings (median); and a chart (PNG) of vertices per view vs depth
-error for a sweep of simplification targets.
+and edge-band error); per-view timings (median); a chart (PNG) of vertices per view vs depth
+error for a sweep of simplification targets; and a PNG of three example views (edges found and
+missed, initial and refined depth error).
 """
 from __future__ import annotations
 
@@ -181,6 +182,71 @@ def chart(sweep_rows: list, path: Path) -> None:
     plt.close(fig)
 
 
+def pick_examples(rows: list) -> list[tuple[str, str]]:
+    """(view, why) for the examples figure: the lowest edge recall, the largest "elsewhere" loss
+    and the median edge-band change (distinct views, rows without GT edges skipped)."""
+    ok = [r for r in rows if r["band_mae_init"] and r["band_mae_refined"] is not None
+          and r["edge_recall_refined"] is not None and np.isfinite(r["edge_recall_refined"])]
+    if not ok:
+        return []
+    change = lambda r: r["band_mae_refined"] / r["band_mae_init"] - 1  # noqa: E731
+    cands = [(min(ok, key=lambda r: r["edge_recall_refined"]), "lowest edge recall"),
+             (max(ok, key=lambda r: r["else_mae_refined"] - r["else_mae_init"]), "largest loss elsewhere"),
+             (sorted(ok, key=change)[len(ok) // 2], "median edge-band change")]
+    out, seen = [], set()
+    for r, why in cands:
+        if r["view"] not in seen:
+            seen.add(r["view"])
+            out.append((r, why))
+    return [(r["view"], f"{r['view']}: {why}\n(band {100 * change(r):+.0f} %, recall "
+             f"{100 * r['edge_recall_refined']:.0f} %, elsewhere {1000 * r['else_mae_init']:.2f} -> "
+             f"{1000 * r['else_mae_refined']:.2f} mm)") for r, why in out]
+
+
+def examples(scene_dir: Path, ws_dir: Path, picks: list[tuple[str, str]], path: Path,
+             err_max_m: float = 0.05) -> None:
+    """A PNG, one row per picked view: the image with the refinement mask (blue tint), detected
+    edges (blue), GT edges found within 2 px (green) and missed (red); |G depth - GT| and
+    |refined depth - GT| (black 0, white >= `err_max_m`)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import scipy.ndimage as nd
+    from PIL import Image
+
+    from ..io.images import read_image
+    from ..scene import cameras_from_json
+
+    if not picks:
+        return
+    cams = cameras_from_json(ws_dir / "global" / "cameras.json")
+    fig, axes = plt.subplots(len(picks), 3, figsize=(12, 3.2 * len(picks)), squeeze=False)
+    for row, (name, title) in zip(axes, picks):
+        cam, vd = cams[name], ws_dir / "views" / name
+        d0, d1, g = np.load(vd / "depth_init.npy"), np.load(vd / "depth.npy"), gt_depth(scene_dir, name)
+        img_path = Path(scene_dir) / "images" / name   # a synthetic scene's layout
+        img = read_image(img_path) if img_path.is_file() else np.zeros(g.shape + (3,))
+        ok = (g > 0) & (d0 > 0)
+        gte = _gt_edges(g, cam) & ok
+        e1 = np.asarray(Image.open(vd / "edges.png")) > 127
+        mask = np.asarray(Image.open(vd / "mask.png")) > 127
+        near = nd.distance_transform_edt(~e1) <= 2
+        ov = np.clip(img, 0, 1) ** (1 / 2.2) * 0.6
+        ov[mask] += np.array([0.0, 0.0, 0.3])
+        ov[e1] = (0.3, 0.3, 1.0)
+        ov[gte & near], ov[gte & ~near] = (0.0, 1.0, 0.0), (1.0, 0.0, 0.0)
+        row[0].imshow(np.clip(ov, 0, 1))
+        row[0].set_title(title, fontsize=8, loc="left")
+        for ax, d, lab in ((row[1], d0, "|G depth - GT|"), (row[2], d1, "|refined depth - GT|")):
+            ax.imshow(np.where(ok, np.abs(d - g), 0), cmap="gray", vmin=0, vmax=err_max_m)
+            ax.set_title(f"{lab} (white >= {100 * err_max_m:.0f} cm)", fontsize=8)
+        for ax in row:
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     from ..executors import make_executor
     from ..pipeline import load_configs, run
@@ -198,6 +264,10 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     ap.add_argument("--output", type=Path, default=Path("bench_view_depth.json"))
     ap.add_argument("--chart", type=Path, default=Path("bench_view_mesh_sweep.png"))
+    ap.add_argument("--examples", type=Path, default=Path("bench_view_depth_examples.png"),
+                    help="PNG of three views (lowest recall, largest loss elsewhere, median band "
+                         "change): image with mask, detected/found/missed GT edges, and the "
+                         "initial and refined depth errors")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes for the two stages")
     ap.add_argument("--no-run", action="store_true",
                     help="only evaluate the views already in --workspace (e.g. after `ibr view_depth`)")
@@ -237,6 +307,7 @@ def main(argv=None) -> int:
                           cpu_s_main_process=round(time.process_time() - c0, 1))
     a.output.write_text(json.dumps(out, indent=1))
     chart(out["sweep"], a.chart)
+    examples(scene, ws_dir, pick_examples(out["views"]), a.examples)
     print(json.dumps(out["summary"], indent=1))
     if tmp:
         shutil.rmtree(tmp, ignore_errors=True)

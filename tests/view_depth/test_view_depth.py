@@ -230,7 +230,7 @@ def tiny_ws(tiny_scene, tmp_path_factory):
     return make_view_ws(tiny_scene[0], tmp_path_factory.mktemp("vd") / "ws")
 
 
-def test_stages_run_through_cli(tiny_ws, tiny_scene):
+def test_stages_run_through_cli(tiny_ws, tiny_scene, tmp_path):
     from ibr_pipeline.cli import main
     from ibr_pipeline.io.mesh import read_ply
     from ibr_pipeline.scene import cameras_from_json
@@ -270,6 +270,17 @@ def test_stages_run_through_cli(tiny_ws, tiny_scene):
     out = evaluate(tiny_scene[0], tiny_ws, sweep=(100, 200))
     assert len({r["view"] for r in out["sweep"]}) >= min(6, checked)
     assert out["summary"]["depth_cpu_ms_median"] > 0
+    # the examples figure: distinct views, one labelled row each, a PNG of three rows
+    from ibr_pipeline.bench.view_depth import examples, pick_examples
+    picks = pick_examples(out["views"])
+    assert 1 <= len(picks) <= 3 and len({v for v, _ in picks}) == len(picks)
+    assert all(t.startswith(v) for v, t in picks)
+    png = tmp_path / "examples.png"
+    examples(tiny_scene[0], tiny_ws, picks, png)
+    from PIL import Image
+    w, h = Image.open(png).size
+    assert w > 500 and h > 150 * len(picks)
+    assert pick_examples([]) == []
     # up to date the second time
     from ibr_pipeline.cli import main as m2
     assert m2(["status", str(tiny_ws)]) == 0
