@@ -181,15 +181,18 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
     for name, a in (("protect", protect), ("trust_g", trust_g), ("distrust_g", distrust_g)):
         if a is not None and a.shape != (h, w):
             raise ValueError(f"{name} must be {(h, w)}, got {a.shape}")
+    # trusted pixels are not swept; those outside distrust_g are accepted with G's depth
     trusted = (mask & trust_g & (depth_init > 0)) if trust_g is not None else np.zeros((h, w), bool)
+    distrust = distrust_g if distrust_g is not None else np.zeros((h, w), bool)
+    kept_trusted = trusted & ~distrust
     dmin, dmax, ok = search_band(depth_init, mask & ~trusted, band_radius)
     out = np.zeros((h, w))
     if not ok.any() or not src_images:
-        if distrust_g is not None:
-            trusted = trusted & ~distrust_g
-        out[trusted] = depth_init[trusted]
-        return MVSResult(out, trusted.copy(), 0, {"sources": len(src_images), "trusted_g": int(trusted.sum()),
-                                                  "accepted": int(trusted.sum())})
+        out[kept_trusted] = depth_init[kept_trusted]
+        n = int(kept_trusted.sum())
+        return MVSResult(out, kept_trusted, 0, {"sources": len(src_images), "trusted_g": n,
+                                                "distrusted_g": int((trusted & distrust).sum()),
+                                                "accepted": n})
     sw = mvs.plane_sweep(image, camera, src_images, src_cams, dmin, dmax, num_depths=num_depths,
                          window=window, mask=ok, device=device)
     photo = np.where(ok & sw.valid, sw.depth, 0.0)
@@ -208,18 +211,14 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
     if protect is not None:
         guard &= ~(keep_g & protect)
     accepted &= ~guard
-    accepted |= trusted
-    distrusted = 0
-    if distrust_g is not None:
-        drop = accepted & distrust_g & (keep_g | trusted)
-        distrusted = int(drop.sum())
-        accepted &= ~drop
+    drop = accepted & keep_g & distrust     # G's depth confirmed by the MVS, but distrusted
+    accepted = (accepted & ~drop) | kept_trusted
     out[~accepted] = 0.0
     return MVSResult(out, accepted, int(ok.sum()),
-                     {"photometric_valid": int((photo > 0).sum()), "trusted_g": int(trusted.sum()),
+                     {"photometric_valid": int((photo > 0).sum()), "trusted_g": int(kept_trusted.sum()),
                       "consistent": int(((photo > 0) & (n_ok >= min_consistent)).sum()),
                       "kept_g": int(keep_g.sum()), "guard_dropped": int(guard.sum()),
-                      "distrusted_g": distrusted,
+                      "distrusted_g": int(drop.sum() + (trusted & distrust).sum()),
                       "accepted": int(accepted.sum()), "sources": len(src_images)})
 
 
