@@ -4,8 +4,10 @@ time budget, loss-curve PNG, deterministic for a seed.
 Determinism: the weights are initialised from `torch.manual_seed(seed)` and the crops of step k
 come from `numpy.random.default_rng([seed, k])`, so a run is a pure function of (data, options,
 number of steps) and a resumed run continues exactly where the checkpoint left it (Adam's state is
-in the checkpoint). A run cut short by the time budget is deterministic up to the number of steps
-it reached (recorded in train.json).
+in the checkpoint). When the time budget binds, the cosine schedule is fitted to it (`fitted_horizon`): the
+decay ends at the step the budget is expected to reach instead of at `steps`, so a cut run still
+ends at a small learning rate; such a run is deterministic given its horizon (recorded in the
+history and the checkpoint, and reused on resume). When `steps` fit the budget nothing changes.
 
 Files: the checkpoint holds only tensors and plain values (`torch.save` of state dicts) and is read
 with `torch.load(weights_only=True)`.
@@ -55,6 +57,8 @@ class TrainOptions:
     # share of the crops taken from capture pairs (data.capture_pairs) instead of render pairs;
     # our extension beyond the paper (docs/DSRNET.md); used only when capture samples are given
     capture_fraction: float = 0.0
+    # fit the cosine decay to the time budget when `steps` would not fit it (`fitted_horizon`)
+    fit_budget: bool = True
 
 
 @dataclass
@@ -191,10 +195,31 @@ def _save_checkpoint(path: Path, model, optim, step: int, history: dict, fingerp
         torch.save(state, tmp)
 
 
-def _lr_at(opts: TrainOptions, step: int) -> float:
-    """Linear warm-up over `warmup_steps`, then cosine decay to 0 at `steps`."""
+def _lr_at(opts: TrainOptions, step: int, horizon: int | None = None) -> float:
+    """Linear warm-up over `warmup_steps`, then cosine decay to 0 at `horizon` (default `steps`)."""
+    h = opts.steps if horizon is None else horizon
     warm = min(1.0, (step + 1) / opts.warmup_steps) if opts.warmup_steps > 0 else 1.0
-    return warm * opts.lr * 0.5 * (1 + math.cos(math.pi * min(step / max(opts.steps, 1), 1.0)))
+    return warm * opts.lr * 0.5 * (1 + math.cos(math.pi * min(step / max(h, 1), 1.0)))
+
+
+_clock = time.perf_counter  # the loop's clock (a test replaces it)
+# steps timed before the first fit; the fit keeps this share of the remaining budget in reserve
+FIT_PROBE_STEPS = 20
+FIT_MARGIN = 0.97
+
+
+def fitted_horizon(planned: int, step: int, steps_timed: int, elapsed_s: float, budget_s: float,
+                   current: int) -> int:
+    """The step at which the cosine decay should end: `current` (the horizon so far, at most
+    `planned`) unless the rate of the last `steps_timed` steps, which took `elapsed_s` of the
+    `budget_s`, says the budget runs out first; then the step it is expected to reach (with
+    FIT_MARGIN of the remaining time; never before `step` + 1). Our addition (not in Xu et al.):
+    a budget-cut run otherwise stops at a high learning rate."""
+    if budget_s <= 0 or steps_timed <= 0 or elapsed_s <= 0:
+        return current
+    remaining = max(0.0, budget_s - elapsed_s)
+    reach = step + int(FIT_MARGIN * remaining * steps_timed / elapsed_s)
+    return max(step + 1, min(current, planned, reach))
 
 
 def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Sequence[Sample],
@@ -236,20 +261,29 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
           history, start, device, capture_samples=()) -> TrainResult:
     from tqdm import tqdm
 
-    t0 = time.perf_counter()
+    clock = _clock
+    t0 = clock()
     step, stopped = start, False
+    # cosine horizon: `steps`, or the one a budget fit chose (kept on resume, see `fitted_horizon`)
+    horizon = int(history.get("horizon", opts.steps)) if start > 0 else opts.steps
+    history["horizon"] = horizon
+    fit = opts.fit_budget and opts.time_budget_s > 0
     bar = tqdm(total=opts.steps, initial=start, desc="supersample: training DSRNet", unit="step",
                disable=not opts.progress, leave=False)
     # validation (PSNR only; the baselines once) about 8 times a run, at checkpoint steps: at
     # 640x480 a full validation of 24 pairs took longer than the 100 training steps between two
     val_every = opts.checkpoint_every * max(1, math.ceil(opts.steps / 8 / opts.checkpoint_every))
     bilinear = None
-    while step < opts.steps:
-        if opts.time_budget_s > 0 and time.perf_counter() - t0 > opts.time_budget_s:
+    while step < horizon:   # the decay is complete at the horizon (= steps unless fitted)
+        now = clock() - t0
+        if opts.time_budget_s > 0 and now > opts.time_budget_s:
             stopped = True
             break
+        if fit and step > start and (step - start == FIT_PROBE_STEPS or step % opts.checkpoint_every == 0):
+            horizon = fitted_horizon(opts.steps, step, step - start, now, opts.time_budget_s, horizon)
+            history["horizon"] = horizon
         for g in optim.param_groups:
-            g["lr"] = _lr_at(opts, step)
+            g["lr"] = _lr_at(opts, step, horizon)
         b = _batch(train_samples, opts, step, device, capture_samples)
         loss, li, lw = total_loss(model, features, b, opts)
         optim.zero_grad(set_to_none=True)
@@ -262,8 +296,8 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
         history["warp_loss"].append(float(lw))
         bar.update(1)
         bar.set_postfix(loss=f"{history['loss'][-1]:.4f}")
-        if step % opts.checkpoint_every == 0 or step == opts.steps:
-            if val_samples and (step % val_every == 0 or step == opts.steps):
+        if step % opts.checkpoint_every == 0 or step == horizon:
+            if val_samples and (step % val_every == 0 or step == horizon):
                 ev = evaluate(model, val_samples, device, baselines=bilinear is None, ssim=False)
                 bilinear = ev.get("psnr_bilinear", bilinear)
                 history["val_step"].append(step)
@@ -273,10 +307,12 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
                 _save_checkpoint(checkpoint, model, optim, step, history, fingerprint)
     bar.close()
     model.eval()
-    return TrainResult(model, step, stopped, time.perf_counter() - t0, history, start)
+    stopped = stopped or horizon < opts.steps   # the budget ended the run before `steps`
+    return TrainResult(model, step, stopped, clock() - t0, history, start)
 
 
-def plot_losses(history: dict, path: Path, title: str = "DSRNet training") -> None:
+def plot_losses(history: dict, path: Path, title: str = "DSRNet training",
+                ylabel: str = "1 − SSIM + w·filters + L_warp") -> None:
     """Loss curve (and validation PSNR) as a PNG, written atomically."""
     import matplotlib
     matplotlib.use("Agg")
@@ -291,7 +327,7 @@ def plot_losses(history: dict, path: Path, title: str = "DSRNet training") -> No
         smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
         ax.plot(steps[k - 1:], smooth, color="C0", lw=1.5, label=f"loss (mean of {k})")
     ax.set_xlabel("step")
-    ax.set_ylabel("1 − SSIM + w·filters + L_warp")
+    ax.set_ylabel(ylabel)
     ax.set_title(title)
     if history.get("val_psnr"):
         ax2 = ax.twinx()

@@ -42,6 +42,9 @@ class SupersampleConfig(StageConfig):
     time_budget_s: float = param(150.0, "wall-clock budget of the whole stage (renders + "
                                  "training); training stops early and saves; 0 = none",
                                  min=0.0, max=7 * 86400.0)
+    fit_budget: bool = param(True, "when `steps` would not fit the time budget, end the cosine "
+                             "decay at the step the budget is expected to reach (timed during "
+                             "the run; our addition) instead of stopping at a high learning rate")
     batch: int = param(4, "crops per step", min=1, max=256)
     crop: int = param(48, "crop side in low-resolution pixels", min=8, max=1024)
     lr: float = param(1e-3, "Adam learning rate", min=1e-7, max=1.0)
@@ -190,14 +193,19 @@ def run(ctx: StageContext) -> None:
                         warp_weight=cfg.warp_weight, l1_weight=cfg.l1_weight,
                         vgg_weights=str(ws.path(cfg.vgg_weights)) if cfg.vgg_weights else "",
                         seed=cfg.seed, checkpoint_every=cfg.checkpoint_every, device=cfg.device, threads=cfg.threads,
-                        progress=show, capture_fraction=cfg.capture_fraction)
+                        progress=show, capture_fraction=cfg.capture_fraction,
+                        fit_budget=cfg.fit_budget)
     result = train(model_cfg, train_samples, val_samples, opts, ws.path(CHECKPOINT), digest,
                    capture_samples=capture_samples)
     device = next(result.model.parameters()).device
     val = evaluate(result.model, val_samples, device)
     save_model(ws.path(MODEL), result.model, {"trained_steps": result.steps})
+    fitted = result.history.get("horizon", cfg.steps) < cfg.steps
     plot_losses(result.history, ws.path(LOSS_PNG),
-                f"DSRNet ({cfg.preset}, {'MVR' if cfg.use_mvr else 'no MVR'}), {result.steps} steps")
+                f"DSRNet ({cfg.preset}, {'MVR' if cfg.use_mvr else 'no MVR'}), {result.steps} steps"
+                + (f" (of {cfg.steps}: fitted to the time budget)" if fitted else ""),
+                "1 − SSIM + w·filters" + (" + L1" if cfg.l1_weight > 0 else "")
+                + (" + L_warp" if cfg.warp_weight > 0 else ""))
     report = {
         "preset": cfg.preset, "model": model_cfg.to_dict(),
         "parameters": count_parameters(result.model), "renderer": cfg.renderer,
@@ -205,6 +213,7 @@ def run(ctx: StageContext) -> None:
         "train_pairs": len(train_samples), "capture_pairs": len(capture_samples),
         "capture_fraction": cfg.capture_fraction, "val_pairs": len(val_samples),
         "steps": result.steps, "steps_planned": cfg.steps, "resumed_from_step": result.resumed_from,
+        "lr_horizon": int(result.history.get("horizon", cfg.steps)),
         "stopped_by_time_budget": result.stopped_by_budget,
         "seconds": {"render": render_s, "train": result.seconds,
                     "total": time.perf_counter() - t_start},
@@ -226,5 +235,5 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="supersample", help="train DSRNet (Xu §5.2) on leave-one-out renders",
-              config=SupersampleConfig, version="2", run=run, inputs=inputs,
+              config=SupersampleConfig, version="3", run=run, inputs=inputs,
               outputs=(MODEL, TRAIN_JSON, LOSS_PNG))

@@ -119,3 +119,38 @@ def test_split_falls_back_to_no_validation_with_two_views():
     assert len(va) == 2 and not set(tr) & set(va)
     with pytest.raises(InputError, match="at least 2"):
         split_views(["a"])
+
+
+def test_fitted_horizon_only_shortens_when_the_budget_binds():
+    from ibr_pipeline.nn.train import FIT_MARGIN, fitted_horizon
+    # 100 steps took 10 s of a 1000 s budget: 10 000 more fit, so a 5000-step plan stands
+    assert fitted_horizon(5000, 100, 100, 10.0, 1000.0, 5000) == 5000
+    # 100 steps took 50 s of 100 s: about 100 more steps (with the margin), not 5000
+    h = fitted_horizon(5000, 100, 100, 50.0, 100.0, 5000)
+    assert h == 100 + int(FIT_MARGIN * 50.0 * 100 / 50.0) and 190 <= h <= 200
+    # never longer than the horizon so far, never before the next step, no budget = no fit
+    assert fitted_horizon(5000, 100, 100, 50.0, 100.0, 150) == 150
+    assert fitted_horizon(5000, 100, 100, 99.9, 100.0, 5000) == 101
+    assert fitted_horizon(5000, 100, 100, 50.0, 0.0, 5000) == 5000
+
+
+def test_budget_fit_ends_the_decay_inside_the_budget(tiny_samples, monkeypatch):
+    """With a fake clock (1 s per step) and a 30 s budget for 60 planned steps, the fitted run
+    ends at its horizon with the learning rate decayed; without the fit the budget cuts it at a
+    high learning rate."""
+    import ibr_pipeline.nn.train as T
+    tr, va, _ = tiny_samples
+    opts = dataclasses.replace(OPTS, steps=60, time_budget_s=30.0, checkpoint_every=10,
+                               warmup_steps=0)
+
+    def run(fit):
+        ticks = iter(range(10_000))
+        monkeypatch.setattr(T, "_clock", lambda: float(next(ticks)))
+        return train(SMALL, tr[:2], [], dataclasses.replace(opts, fit_budget=fit))
+
+    fitted, cut = run(True), run(False)
+    h = fitted.history["horizon"]
+    assert fitted.stopped_by_budget and fitted.steps == h and 20 < h < 30
+    assert T._lr_at(opts, fitted.steps - 1, h) < 0.05 * opts.lr
+    assert cut.stopped_by_budget and cut.history["horizon"] == 60 and 25 <= cut.steps <= 31
+    assert T._lr_at(opts, cut.steps - 1, 60) > 0.4 * opts.lr
