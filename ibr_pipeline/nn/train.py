@@ -203,23 +203,24 @@ def _lr_at(opts: TrainOptions, step: int, horizon: int | None = None) -> float:
 
 
 _clock = time.perf_counter  # the loop's clock (a test replaces it)
-# steps timed before the first fit; the fit keeps this share of the remaining budget in reserve
+# the fit times the steps after the first FIT_SKIP ones (allocation, first-touch overhead), first
+# after FIT_PROBE_STEPS of them, then at every checkpoint; FIT_MARGIN of the remaining time is used
+FIT_SKIP = 5
 FIT_PROBE_STEPS = 20
 FIT_MARGIN = 0.97
 
 
-def fitted_horizon(planned: int, step: int, steps_timed: int, elapsed_s: float, budget_s: float,
-                   current: int) -> int:
-    """The step at which the cosine decay should end: `current` (the horizon so far, at most
-    `planned`) unless the rate of the last `steps_timed` steps, which took `elapsed_s` of the
-    `budget_s`, says the budget runs out first; then the step it is expected to reach (with
-    FIT_MARGIN of the remaining time; never before `step` + 1). Our addition (not in Xu et al.):
-    a budget-cut run otherwise stops at a high learning rate."""
-    if budget_s <= 0 or steps_timed <= 0 or elapsed_s <= 0:
-        return current
-    remaining = max(0.0, budget_s - elapsed_s)
-    reach = step + int(FIT_MARGIN * remaining * steps_timed / elapsed_s)
-    return max(step + 1, min(current, planned, reach))
+def fitted_horizon(planned: int, step: int, steps_timed: int, timed_s: float,
+                   remaining_s: float) -> int:
+    """The step at which the cosine decay should end: `planned`, unless the rate of the last
+    `steps_timed` steps (which took `timed_s`) says the `remaining_s` of the budget run out first;
+    then the step it is expected to reach (FIT_MARGIN of the remaining time; never before
+    `step` + 1). Our addition (not in Xu et al.): a budget-cut run otherwise stops at a high
+    learning rate."""
+    if steps_timed <= 0 or timed_s <= 0:
+        return planned
+    reach = step + int(FIT_MARGIN * max(0.0, remaining_s) * steps_timed / timed_s)
+    return max(step + 1, min(planned, reach))
 
 
 def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Sequence[Sample],
@@ -268,6 +269,7 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
     horizon = int(history.get("horizon", opts.steps)) if start > 0 else opts.steps
     history["horizon"] = horizon
     fit = opts.fit_budget and opts.time_budget_s > 0
+    t_fit = 0.0
     bar = tqdm(total=opts.steps, initial=start, desc="supersample: training DSRNet", unit="step",
                disable=not opts.progress, leave=False)
     # validation (PSNR only; the baselines once) about 8 times a run, at checkpoint steps: at
@@ -279,8 +281,11 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
         if opts.time_budget_s > 0 and now > opts.time_budget_s:
             stopped = True
             break
-        if fit and step > start and (step - start == FIT_PROBE_STEPS or step % opts.checkpoint_every == 0):
-            horizon = fitted_horizon(opts.steps, step, step - start, now, opts.time_budget_s, horizon)
+        if fit and step - start == FIT_SKIP:
+            t_fit = now
+        timed = step - start - FIT_SKIP
+        if fit and timed > 0 and (timed == FIT_PROBE_STEPS or step % opts.checkpoint_every == 0):
+            horizon = fitted_horizon(opts.steps, step, timed, now - t_fit, opts.time_budget_s - now)
             history["horizon"] = horizon
         for g in optim.param_groups:
             g["lr"] = _lr_at(opts, step, horizon)

@@ -123,15 +123,16 @@ def test_split_falls_back_to_no_validation_with_two_views():
 
 def test_fitted_horizon_only_shortens_when_the_budget_binds():
     from ibr_pipeline.nn.train import FIT_MARGIN, fitted_horizon
-    # 100 steps took 10 s of a 1000 s budget: 10 000 more fit, so a 5000-step plan stands
-    assert fitted_horizon(5000, 100, 100, 10.0, 1000.0, 5000) == 5000
-    # 100 steps took 50 s of 100 s: about 100 more steps (with the margin), not 5000
-    h = fitted_horizon(5000, 100, 100, 50.0, 100.0, 5000)
+    # 100 steps took 10 s and 990 s remain: 9 900 more fit, so a 5000-step plan stands
+    assert fitted_horizon(5000, 100, 100, 10.0, 990.0) == 5000
+    # 100 steps took 50 s and 50 s remain: about 100 more steps (with the margin), not 5000
+    h = fitted_horizon(5000, 100, 100, 50.0, 50.0)
     assert h == 100 + int(FIT_MARGIN * 50.0 * 100 / 50.0) and 190 <= h <= 200
-    # never longer than the horizon so far, never before the next step, no budget = no fit
-    assert fitted_horizon(5000, 100, 100, 50.0, 100.0, 150) == 150
-    assert fitted_horizon(5000, 100, 100, 99.9, 100.0, 5000) == 101
-    assert fitted_horizon(5000, 100, 100, 50.0, 0.0, 5000) == 5000
+    # never before the next step, never past the plan, nothing timed = the plan
+    assert fitted_horizon(5000, 100, 100, 50.0, 0.0) == 101
+    assert fitted_horizon(5000, 100, 100, 50.0, -3.0) == 101
+    assert fitted_horizon(150, 100, 100, 50.0, 50.0) == 150
+    assert fitted_horizon(5000, 100, 0, 0.0, 50.0) == 5000
 
 
 def test_budget_fit_ends_the_decay_inside_the_budget(tiny_samples, monkeypatch):
