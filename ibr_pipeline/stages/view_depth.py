@@ -80,11 +80,12 @@ class ViewDepthConfig(StageConfig):
                          "4); 'none' = version 3", choices=("far", "confirmed", "none"))
     g_trust_px: int = param(0, "g_trust 'far': distance from G's edges and rounded steps beyond which "
                             "G is trusted, pixels on a 2 cm-voxel G at 320x240 / 1 cm at 640x480 "
-                            "(times ramp_scale otherwise); 0 = automatic: 6 px below 480 px wide, "
+                            "(times width x voxel relative to those, ramp_ratio, otherwise: 0.5 for "
+                            "a 5 mm G at 640x480); 0 = automatic: 6 px below 480 px wide, "
                             "4 px from 480 (a sweep, docs/VIEW_DEPTH.md: the finer image's MVS "
                             "corrects closer to G's edges)", min=0, max=64)
     ramp_zone_px: int = param(8, "within this distance of a rounded step (pixels at 320x240 on a 2 cm-"
-                              "voxel G, times ramp_scale) G's depth is not kept even where the MVS "
+                              "voxel G, times ramp_ratio) G's depth is not kept even where the MVS "
                               "confirms it within mvs_min_change lambda (a ramp of a 1-3 lambda step "
                               "is within that of both plateaus): Eq. 2 re-interpolates it from the "
                               "plateaus along colour edges (version 5, ours); 0 = off", min=0, max=64)
@@ -124,6 +125,15 @@ def ramp_scale(width: int, g_voxel: float) -> int:
     voxels wide, i.e. `voxel * f / z` pixels, so the strides follow width x voxel relative to the
     2 cm G at 320x240 they were tuned on (1 for global_mesh's automatic 1 cm at 640x480 too)."""
     return max(1, int(round(width / 320 * g_voxel / G_VOXEL_TUNED)))
+
+
+def ramp_ratio(width: int, g_voxel: float) -> float:
+    """Unrounded width x G's voxel relative to the 2 cm G at 320x240: the factor for the trust
+    distance and the ramp zone (version 6). Unlike `ramp_scale` (integer strides, at least 1) it
+    goes below 1 for a G finer than 1 cm at 640x480, whose edges are misplaced and rounded over
+    proportionally fewer pixels: a 5 mm G at 640x480 gives 0.5. It is exactly 1 for the two
+    configurations the distances were tuned on (2 cm at 320x240, 1 cm at 640x480)."""
+    return round(width / 320 * g_voxel / G_VOXEL_TUNED, 3)
 
 
 def g_trust_auto(width: int) -> int:
@@ -251,6 +261,7 @@ def _run(ctx: StageContext, view: str) -> None:
     # rounded-step strides follow the ramps themselves: width x G's voxel size (ramp_scale)
     px = pixel_scale(cam.width)
     rs = ramp_scale(cam.width, _g_voxel(ws))
+    rr = ramp_ratio(cam.width, _g_voxel(ws))
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
     t = time.perf_counter()
     det = dr.detect(depth0, cam, cfg.lambda_rel, cfg.mask_side_m, cfg.mask_min_half_px)
@@ -287,12 +298,12 @@ def _run(ctx: StageContext, view: str) -> None:
         if cfg.g_trust != "none":  # G is reliable away from its own edges and ramps
             dist_g = nd.distance_transform_edt(~(det.edge_pixels | rounded_all))
             protect = dist_g > px * cfg.mvs_edge_guard
-            if cfg.g_trust == "far":   # G misplaces an edge by about its ramp width (ramp_scale);
+            if cfg.g_trust == "far":   # G misplaces an edge by about its ramp width (ramp_ratio);
                 # the borders of G's holes (grazing faces, unseen areas) are no misplaced edge
                 surf = det.edges.between_surfaces(depth0 > 0).pixels()
-                trust = nd.distance_transform_edt(~(surf | rounded_all)) > rs * (cfg.g_trust_px or g_trust_auto(cam.width))
+                trust = nd.distance_transform_edt(~(surf | rounded_all)) > rr * (cfg.g_trust_px or g_trust_auto(cam.width))
         if cfg.ramp_zone_px > 0 and rounded_all.any():  # G's ramps are what is wrong there
-            ramp = nd.distance_transform_edt(~rounded_all) <= rs * cfg.ramp_zone_px
+            ramp = nd.distance_transform_edt(~rounded_all) <= rr * cfg.ramp_zone_px
         half = int(np.ceil(0.5 * cfg.mask_side_m * cam.K[0, 0] / max(float(np.median(depth0[mask])), 0.1)))
         res = dr.masked_mvs(image, cam, depth0, mask, src_imgs, src_cams, src_depths,
                             num_depths=cfg.num_depths, window=cfg.window, band_radius=max(2, half + 1),
@@ -343,6 +354,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="5", run=run, per_view=True,
+              config=ViewDepthConfig, version="6", run=run, per_view=True,
               inputs=(REGISTERED_CAMERAS, "global/mesh.ply"), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)

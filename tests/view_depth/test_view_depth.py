@@ -317,6 +317,12 @@ def test_rounded_strides_follow_the_ramp_width(tmp_path):
     from ibr_pipeline.workspace import Workspace
     assert [ramp_scale(w, 0.02) for w in (160, 320, 640, 1280)] == [1, 1, 2, 4]
     assert [ramp_scale(w, 0.01) for w in (320, 640, 1280)] == [1, 1, 2]
+    # the trust distance and ramp zone use the unrounded ratio: exactly 1 on the two tuned
+    # configurations, 0.5 for a 5 mm G at 640x480 (where the integer strides stay at 1)
+    from ibr_pipeline.stages.view_depth import ramp_ratio
+    assert ramp_ratio(320, 0.02) == 1.0 and ramp_ratio(640, 0.01) == 1.0
+    assert ramp_ratio(640, 0.005) == 0.5 and ramp_scale(640, 0.005) == 1
+    assert ramp_ratio(1280, 0.015) == 3.0 and ramp_ratio(320, 0.005) == 0.25
     ws_dir = tmp_path / "ws"
     (ws_dir / "global").mkdir(parents=True)
     (ws_dir / "ibr.toml").write_text('[input]\npath = "x"\n')
