@@ -143,10 +143,14 @@ def g_trust_auto(width: int) -> int:
 
 
 def _g_voxel(ws) -> float:
-    """G's TSDF voxel size from global/report.json (global_mesh version 3), else the old 2 cm."""
+    """G's TSDF voxel size from global/report.json (global_mesh version 3), else the old 2 cm; also
+    2 cm when G is in SfM units (no depth, no scale), where the voxel is no length in metres."""
     import json
     try:
-        v = json.loads(ws.path("global/report.json").read_text())["voxel_size"]["value"]
+        rep = json.loads(ws.path("global/report.json").read_text())
+        if rep.get("units") == "sfm":
+            return G_VOXEL_TUNED
+        v = rep["voxel_size"]["value"]
         return float(v) if v > 0 else G_VOXEL_TUNED
     except (OSError, KeyError, TypeError, ValueError):
         return G_VOXEL_TUNED

@@ -332,3 +332,7 @@ def test_rounded_strides_follow_the_ramp_width(tmp_path):
     assert _g_voxel(ws) == 0.02                                   # report without the field
     (ws_dir / "global" / "report.json").write_text('{"voxel_size": {"value": 0.01, "auto": true}}')
     assert _g_voxel(ws) == 0.01
+    # a G in SfM units has no voxel in metres: the tuned 2 cm (ratio 1 at 320x240)
+    (ws_dir / "global" / "report.json").write_text(
+        '{"units": "sfm", "voxel_size": {"value": 0.0004, "auto": true}}')
+    assert _g_voxel(ws) == 0.02
