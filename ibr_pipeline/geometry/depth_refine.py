@@ -133,9 +133,7 @@ def edge_guard(depth: np.ndarray, radius: int, camera: Camera,
     depth = np.asarray(depth, dtype=np.float64)
     valid = depth > 0
     P = points_from_depth(depth, camera.K)
-    e = de.depth_edges(P, normals_from_points(P, valid), depth, lambda_rel)
-    e.right &= valid[:, :-1] & valid[:, 1:]
-    e.down &= valid[:-1, :] & valid[1:, :]
+    e = de.depth_edges(P, normals_from_points(P, valid), depth, lambda_rel).between_surfaces(valid)
     if radius <= 0 or not (e.right.any() or e.down.any()):
         return np.zeros(depth.shape, bool)
     return cv2.dilate(e.pixels().astype(np.uint8), np.ones((2 * radius + 1,) * 2, np.uint8)) > 0

@@ -264,8 +264,8 @@ def _run(ctx: StageContext, view: str) -> None:
     # fraction at other sizes (at 640x480 the 2 cm TSDF ramps span twice as many pixels); the
     # rounded-step strides follow the ramps themselves: width x G's voxel size (ramp_scale)
     px = pixel_scale(cam.width)
-    rs = ramp_scale(cam.width, _g_voxel(ws))
-    rr = ramp_ratio(cam.width, _g_voxel(ws))
+    g_voxel = _g_voxel(ws)
+    rs, rr = ramp_scale(cam.width, g_voxel), ramp_ratio(cam.width, g_voxel)
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
     t = time.perf_counter()
     det = dr.detect(depth0, cam, cfg.lambda_rel, cfg.mask_side_m, cfg.mask_min_half_px)
