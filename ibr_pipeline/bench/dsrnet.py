@@ -5,7 +5,7 @@ and speed.
         [--steps 1200] [--time-budget 0] [--preset cpu|paper] [--device cpu|cuda|auto]
         [--no-ablation] [--sequence 12] [--repeats 5] [--out bench_dsrnet.json]
         [--workspace WS [--model WS/nn/dsrnet.pt [--model-no-mvr WS2/nn/dsrnet.pt]]]
-        [--capture-fraction 0.5]
+        [--capture-fraction 0.5] [--self-ensemble]
 
 Data: the STAND-IN low-res renderer (nn/data.py: ground truth + IBR-like artefacts), so the figures
 say what the network does with blur/misalignment/holes, not with real IBR renders. With
@@ -16,7 +16,9 @@ validation, the full-resolution baseline and the dense sequence (ground truth fr
 own `WS/nn/dsrnet.pt`, on the same held-out views (the stage's split) against the full-resolution
 render; `--model-no-mvr FILE` adds a network trained separately with `supersample.use_mvr=false`
 (the Table 3 ablation on real renders, same held-out views and sequence). `--capture-fraction`
-mixes capture pairs into training (`data.capture_pairs`, docs/DSRNET.md).
+mixes capture pairs into training (`data.capture_pairs`, docs/DSRNET.md). `--self-ensemble`
+also measures every net as NAME_self_ensemble (`nn.infer.run_network`: the mean of the net on the
+frame and on its mirror image) and its inference time.
 
 Measured:
 * held-out capture views (the 10 % split, never trained on): PSNR/SSIM of DSRNet with MVR,
@@ -82,22 +84,29 @@ def _metrics(gt, img):
     return metrics.psnr(gt, img), metrics.ssim(gt, img)
 
 
-def _run_model(model, sample, device):
+def _run_model(model, sample, device, self_ensemble: bool = False):
     import torch
 
     from ..nn.data import to_tensors
+    from ..nn.infer import run_network
     b = {k: v.to(device) for k, v in to_tensors([sample]).items()}
     with torch.no_grad():
-        y = model(b["cur"], b["depth"], b["prev"], b["depth_prev"], b["flow"])["image"]
+        y = run_network(model, b["cur"], b["depth"], b["prev"], b["depth_prev"], b["flow"],
+                        self_ensemble)
     return y.clamp(0, 1)[0].permute(1, 2, 0).cpu().numpy()
 
 
-def evaluate_methods(samples, models: dict, full_res: dict, device, scale: int) -> dict:
-    """Per method: mean PSNR/SSIM over samples, plus per-frame outputs for flicker."""
+def evaluate_methods(samples, models: dict, full_res: dict, device, scale: int,
+                     self_ensemble: bool = False) -> dict:
+    """Per method: mean PSNR/SSIM over samples, plus per-frame outputs for flicker. With
+    `self_ensemble`, every model is also measured as NAME_self_ensemble (nn.infer.run_network)."""
     from ..nn.infer import upsample
     res, outs = {}, {}
     for s in samples:
         cands = {name: _run_model(m, s, device) for name, m in models.items()}
+        if self_ensemble:
+            cands.update({f"{name}_self_ensemble": _run_model(m, s, device, True)
+                          for name, m in models.items()})
         cands["bilinear"] = upsample(s.cur.color, scale, "bilinear")
         cands["bicubic"] = upsample(s.cur.color, scale, "bicubic")
         if s.name in full_res:
@@ -224,6 +233,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sequence", type=int, default=12, help="dense held-out frames (0 = none)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--infer-size", default="640x480", help="output size of the speed test")
+    ap.add_argument("--self-ensemble", action="store_true",
+                    help="also measure every net with the mirror-image self-ensemble (2 passes)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench_dsrnet.json")
     args = ap.parse_args(argv)
@@ -304,7 +315,8 @@ def main(argv=None) -> int:
         print(f"trained {key}: {r.steps} steps in {r.seconds:.0f} s", flush=True)
     report["training"] = trainings
     with torch_threads(cpu_threads(args.threads)):
-        val_res, val_outs = evaluate_methods(va, models, full_res, device, scale)
+        val_res, val_outs = evaluate_methods(va, models, full_res, device, scale,
+                                             args.self_ensemble)
         report["heldout_views"] = val_res
         report["heldout_error_breakdown"] = error_breakdown(va, val_outs, full_depth, scale)
         if args.sequence:
@@ -320,30 +332,33 @@ def main(argv=None) -> int:
             order = [s[0] for s in seq]
             samples = [make_sample(order[i], order[max(i - 1, 0)], sframes, sgt[order[i]])
                        for i in range(len(order))]
-            seq_res, outs = evaluate_methods(samples, models, full, device, scale)
+            seq_res, outs = evaluate_methods(samples, models, full, device, scale,
+                                             args.self_ensemble)
             gts = [sgt[n] for n in order]
             seq_res["flicker"] = {k: flicker(v, gts) for k, v in outs.items()}
             seq_res["seconds"] = time.perf_counter() - t_seq  # trace + renders + all methods
             report["sequence"] = seq_res
         # inference speed at --infer-size output (random content: speed only)
         W, H = (int(x) for x in args.infer_size.lower().split("x"))
-        sampler = SuperSampler(models["dsrnet"].to(device), device)
         cam_lr = low_res_camera(list(cams.values())[0].resized(W, H), scale)
         rng = np.random.default_rng(0)
         col = rng.random((cam_lr.height, cam_lr.width, 3), dtype=np.float32)
         dep = np.full((cam_lr.height, cam_lr.width), 2.0, np.float32)
-        ms = []
-        for i in range(args.repeats + 1):
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            t = time.perf_counter()
-            sampler(col, dep, cam_lr)
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-            if i:  # the first call warms up
-                ms.append((time.perf_counter() - t) * 1000)
-        report["inference_ms"] = {"output": f"{W}x{H}", "median": statistics.median(ms),
-                                  "runs": ms}
+        for key, ens in (("inference_ms", False), ("inference_ms_self_ensemble", True)):
+            if ens and not args.self_ensemble:
+                continue
+            sampler = SuperSampler(models["dsrnet"].to(device), device, ens)
+            ms = []
+            for i in range(args.repeats + 1):
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                t = time.perf_counter()
+                sampler(col, dep, cam_lr)
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                if i:  # the first call warms up
+                    ms.append((time.perf_counter() - t) * 1000)
+            report[key] = {"output": f"{W}x{H}", "median": statistics.median(ms), "runs": ms}
     text = json.dumps(report, indent=1)
     Path(args.out).write_text(text)
     print(_summary(report))
@@ -374,6 +389,9 @@ def _summary(r: dict) -> str:
                                                 for k, v in r["sequence"]["flicker"].items()))
     lines.append(f"  inference at {r['inference_ms']['output']}: "
                  f"{r['inference_ms']['median']:.0f} ms (median)")
+    if "inference_ms_self_ensemble" in r:
+        lines.append(f"  inference with the self-ensemble: "
+                     f"{r['inference_ms_self_ensemble']['median']:.0f} ms (median)")
     return "\n".join(lines)
 
 

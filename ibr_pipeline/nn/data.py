@@ -223,19 +223,43 @@ class StandInRenderer:
 
 
 class IBRRenderer:
-    """The real low-resolution renderer: leave-one-out renders with issue #7's IBRModel."""
+    """The real low-resolution renderer: leave-one-out renders with issue #7's IBRModel.
 
-    def __init__(self, ws, layers: bool = True):
+    `exclude`: {name: more views to leave out of that view's render} (`nearest_views`): renders
+    from farther source views, with the artefacts of a view off the capture path."""
+
+    def __init__(self, ws, layers: bool = True, exclude: dict | None = None):
         try:
             from ..render.ibr import IBRModel
         except ImportError as e:
             raise InputError("supersample: the IBR renderer (ibr_pipeline.render.ibr, stage "
                              f"render_views, issue #7) is not available: {e}") from None
         self.model = IBRModel.load(ws, layers=layers)
+        self.exclude = exclude or {}
 
     def __call__(self, name: str, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-        frame = self.model.render(camera, exclude=(name,))
+        frame = self.model.render(camera, exclude=(name, *self.exclude.get(name, ())))
         return np.asarray(frame.color, np.float32), np.asarray(frame.depth, np.float32)
+
+    def excluding(self, exclude: dict) -> "IBRRenderer":
+        """The same loaded model, leaving out `exclude[name]` as well (see the class doc)."""
+        other = object.__new__(IBRRenderer)
+        other.model, other.exclude = self.model, dict(exclude)
+        return other
+
+
+def nearest_views(cameras: dict[str, Camera], names: Sequence[str], k: int) -> dict[str, list]:
+    """{name: the k other views of `cameras` whose optical centres are nearest to name's}."""
+    if k < 0:
+        raise ValueError(f"k must be >= 0, got {k}")
+    allv = list(cameras)
+    centres = np.array([cameras[n].center for n in allv], dtype=np.float64).reshape(-1, 3)
+    out = {}
+    for n in names:
+        d = np.linalg.norm(centres - np.asarray(cameras[n].center, np.float64), axis=1)
+        order = [allv[i] for i in np.argsort(d, kind="stable") if allv[i] != n]
+        out[n] = order[:k]
+    return out
 
 
 def render_low_res(names: Sequence[str], cameras: dict[str, Camera], renderer: Renderer,

@@ -51,6 +51,9 @@ class SupersampleConfig(StageConfig):
     warmup_steps: int = param(100, "linear learning-rate warm-up before the cosine decay (without "
                               "it the net stayed at bicubic quality on real renders)",
                               min=0, max=1_000_000)
+    grad_clip: float = param(1.0, "clip the gradient's global L2 norm to this (0 = off; our "
+                             "addition: a `paper`-width run diverged without it)", min=0.0,
+                             max=1e6)
     perceptual_weight: float = param(0.1, "w of the filter/VGG term (§5.2.2: w = 0.1)",
                                      min=0.0, max=100.0)
     l1_weight: float = param(0.0, "optional L1 image term (not in §5.2.2's equation; Table 4 "
@@ -64,6 +67,11 @@ class SupersampleConfig(StageConfig):
                                     "instead of render pairs; our extension beyond §6, measured "
                                     "no gain (docs/DSRNET.md); 0 = render pairs only (§6)",
                                     min=0.0, max=1.0)
+    exclude_nearest: int = param(0, "also train on a second render of each training view that "
+                                 "leaves out its N nearest capture views too (farther sources: "
+                                 "the artefacts of views off the capture path; our extension "
+                                 "beyond §6); 0 = leave-one-out renders only (§6)",
+                                 min=0, max=10_000)
     val_fraction: float = param(0.1, "share of capture views held out for validation (§6: 0.1)",
                                 min=0.05, max=0.5)
     seed: int = param(0, "seed of the weights and the crops (training is deterministic)",
@@ -79,6 +87,9 @@ class SupersampleConfig(StageConfig):
     progress: bool = param(True, "show progress bars")
 
     def check(self, prefix: str) -> None:
+        if self.exclude_nearest and self.renderer != "ibr":
+            raise ConfigError(prefix + "exclude_nearest", "needs renderer = 'ibr' (the stand-in "
+                              "renderer has no source views to leave out)")
         if self.vgg_weights and not self.vgg_weights.endswith((".pt", ".pth")):
             raise ConfigError(prefix + "vgg_weights", f"expected a .pt/.pth file, got "
                               f"{self.vgg_weights!r}")
@@ -126,7 +137,7 @@ def run(ctx: StageContext) -> None:
 
     from ..io.images import read_image
     from ..nn.data import (IBRRenderer, StandInRenderer, capture_pairs, make_sample,
-                           render_low_res, sequence_pairs, split_views)
+                           nearest_views, render_low_res, sequence_pairs, split_views)
     from ..nn.model import count_parameters, preset
     from ..nn.train import (TrainOptions, cpu_threads, evaluate, plot_losses, save_model,
                             train)
@@ -139,6 +150,9 @@ def run(ctx: StageContext) -> None:
     if cfg.vgg_weights and not ws.path(cfg.vgg_weights).is_file():
         raise InputError(f"{ws.path(cfg.vgg_weights)}: supersample.vgg_weights file not found")
     train_names, val_names = split_views(names, cfg.val_fraction)
+    if cfg.exclude_nearest >= len(names) - 1:
+        raise InputError(f"supersample.exclude_nearest = {cfg.exclude_nearest} would leave out "
+                         f"every other view ({len(names)} registered views)")
     if cfg.renderer == "standin":
         renderer = StandInRenderer(ws.input_root, seed=cfg.seed)
     else:
@@ -153,20 +167,27 @@ def run(ctx: StageContext) -> None:
     with atomic_path(meta) as tmp:
         tmp.write_text(json.dumps({"digest": digest}))
 
-    def cache(name, compute):
-        from ..workspace import view_key
-        f = cache_dir / f"{view_key(name)}.npz"
-        if f.is_file():
-            with np.load(f) as z:
-                return z["color"], z["depth"]
-        color, depth = compute()
-        with atomic_path(f) as tmp:
-            np.savez(tmp, color=color, depth=depth)
-        return color, depth
+    def cache_as(suffix=""):
+        def cache(name, compute):
+            from ..workspace import view_key
+            f = cache_dir / f"{view_key(name)}{suffix}.npz"
+            if f.is_file():
+                with np.load(f) as z:
+                    return z["color"], z["depth"]
+            color, depth = compute()
+            with atomic_path(f) as tmp:
+                np.savez(tmp, color=color, depth=depth)
+            return color, depth
+        return cache
 
     t0 = time.perf_counter()
     show = cfg.progress and ctx.progress   # `ibr ... --no-progress` silences the stage's bars too
-    frames = render_low_res(names, cams, renderer, cfg.scale, show, cache)
+    frames = render_low_res(names, cams, renderer, cfg.scale, show, cache_as())
+    far_frames = {}
+    if cfg.exclude_nearest:  # training views only: no validation view is ever a target
+        near = nearest_views(cams, train_names, cfg.exclude_nearest)
+        far_frames = render_low_res(train_names, cams, renderer.excluding(near), cfg.scale, show,
+                                    cache_as(f"__far{cfg.exclude_nearest}"))
     render_s = time.perf_counter() - t0
     targets = {}
     for n in names:
@@ -178,6 +199,9 @@ def run(ctx: StageContext) -> None:
         targets[n] = img
     train_pairs = sequence_pairs(train_names, train_names)
     train_samples = [make_sample(c, p, frames, targets[c]) for c, p in train_pairs]
+    far_samples = ([make_sample(c, p, far_frames, targets[c]) for c, p in train_pairs]
+                   if far_frames else [])
+    train_samples += far_samples
     # capture pairs of the training views only (never a validation view, not even as previous)
     capture_samples = capture_pairs(train_pairs, frames, targets) if cfg.capture_fraction > 0 else []
     val_samples = [make_sample(c, p, frames, targets[c]) for c, p in sequence_pairs(names, val_names)
@@ -194,7 +218,7 @@ def run(ctx: StageContext) -> None:
                         vgg_weights=str(ws.path(cfg.vgg_weights)) if cfg.vgg_weights else "",
                         seed=cfg.seed, checkpoint_every=cfg.checkpoint_every, device=cfg.device, threads=cfg.threads,
                         progress=show, capture_fraction=cfg.capture_fraction,
-                        fit_budget=cfg.fit_budget)
+                        fit_budget=cfg.fit_budget, grad_clip=cfg.grad_clip)
     result = train(model_cfg, train_samples, val_samples, opts, ws.path(CHECKPOINT), digest,
                    capture_samples=capture_samples)
     device = next(result.model.parameters()).device
@@ -210,10 +234,12 @@ def run(ctx: StageContext) -> None:
         "preset": cfg.preset, "model": model_cfg.to_dict(),
         "parameters": count_parameters(result.model), "renderer": cfg.renderer,
         "train_views": train_names, "val_views": val_names,
-        "train_pairs": len(train_samples), "capture_pairs": len(capture_samples),
+        "train_pairs": len(train_samples), "far_pairs": len(far_samples),
+        "exclude_nearest": cfg.exclude_nearest, "capture_pairs": len(capture_samples),
         "capture_fraction": cfg.capture_fraction, "val_pairs": len(val_samples),
         "steps": result.steps, "steps_planned": cfg.steps, "resumed_from_step": result.resumed_from,
         "lr_horizon": int(result.history.get("horizon", cfg.steps)),
+        "clipped_steps": int(result.history.get("clipped", 0)),
         "stopped_by_time_budget": result.stopped_by_budget,
         "seconds": {"render": render_s, "train": result.seconds,
                     "total": time.perf_counter() - t_start},
@@ -235,5 +261,5 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="supersample", help="train DSRNet (Xu §5.2) on leave-one-out renders",
-              config=SupersampleConfig, version="3", run=run, inputs=inputs,
+              config=SupersampleConfig, version="4", run=run, inputs=inputs,
               outputs=(MODEL, TRAIN_JSON, LOSS_PNG))

@@ -155,3 +155,28 @@ def test_budget_fit_ends_the_decay_inside_the_budget(tiny_samples, monkeypatch):
     assert T._lr_at(opts, fitted.steps - 1, h) < 0.05 * opts.lr
     assert cut.stopped_by_budget and cut.history["horizon"] == 60 and 25 <= cut.steps <= 31
     assert T._lr_at(opts, cut.steps - 1, 60) > 0.4 * opts.lr
+
+
+def test_gradient_clipping_bounds_the_norm_and_counts_clipped_steps(tiny_samples, monkeypatch):
+    tr, va, _ = tiny_samples
+    norms = []
+    real = torch.nn.utils.clip_grad_norm_
+
+    def spy(params, max_norm):
+        params = list(params)
+        before = real(params, max_norm)
+        after = torch.sqrt(sum((p.grad.detach() ** 2).sum() for p in params if p.grad is not None))
+        norms.append((float(before), float(after)))
+        return before
+
+    monkeypatch.setattr(torch.nn.utils, "clip_grad_norm_", spy)
+    tight = train(SMALL, tr, va, dataclasses.replace(OPTS, grad_clip=1e-4))
+    assert tight.history["clipped"] == 6 and len(norms) == 6
+    assert all(b > 1e-4 and a <= 1e-4 * 1.001 for b, a in norms)   # clipped to the bound
+    norms.clear()
+    loose = train(SMALL, tr, va, dataclasses.replace(OPTS, grad_clip=1e9))
+    assert loose.history["clipped"] == 0 and all(abs(a - b) <= 1e-6 * b for b, a in norms)
+    off = train(SMALL, tr, va, dataclasses.replace(OPTS, grad_clip=0.0))
+    assert "clipped" not in off.history and len(norms) == 6              # not called when off
+    # a bound that never binds changes nothing
+    assert torch.equal(_weights(loose.model), _weights(off.model))
