@@ -150,7 +150,7 @@ def run(ctx: StageContext) -> None:
     if cfg.vgg_weights and not ws.path(cfg.vgg_weights).is_file():
         raise InputError(f"{ws.path(cfg.vgg_weights)}: supersample.vgg_weights file not found")
     train_names, val_names = split_views(names, cfg.val_fraction)
-    if cfg.exclude_nearest >= len(names) - 1:
+    if cfg.exclude_nearest and cfg.exclude_nearest >= len(names) - 1:
         raise InputError(f"supersample.exclude_nearest = {cfg.exclude_nearest} would leave out "
                          f"every other view ({len(names)} registered views)")
     if cfg.renderer == "standin":
