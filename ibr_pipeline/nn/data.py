@@ -15,6 +15,7 @@ that view* at the given (low-resolution) camera.
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -225,17 +226,18 @@ class StandInRenderer:
 class IBRRenderer:
     """The real low-resolution renderer: leave-one-out renders with issue #7's IBRModel.
 
-    `exclude`: {name: more views to leave out of that view's render} (`nearest_views`): renders
-    from farther source views, with the artefacts of a view off the capture path."""
+    `excluding({name: more views})` (`nearest_views`): the same model, leaving those views out of
+    that view's render as well: renders from farther sources, with the artefacts of a view off the
+    capture path."""
 
-    def __init__(self, ws, layers: bool = True, exclude: dict | None = None):
+    def __init__(self, ws, layers: bool = True):
         try:
             from ..render.ibr import IBRModel
         except ImportError as e:
             raise InputError("supersample: the IBR renderer (ibr_pipeline.render.ibr, stage "
                              f"render_views, issue #7) is not available: {e}") from None
         self.model = IBRModel.load(ws, layers=layers)
-        self.exclude = exclude or {}
+        self.exclude: dict = {}
 
     def __call__(self, name: str, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         frame = self.model.render(camera, exclude=(name, *self.exclude.get(name, ())))
@@ -243,8 +245,8 @@ class IBRRenderer:
 
     def excluding(self, exclude: dict) -> "IBRRenderer":
         """The same loaded model, leaving out `exclude[name]` as well (see the class doc)."""
-        other = object.__new__(IBRRenderer)
-        other.model, other.exclude = self.model, dict(exclude)
+        other = copy.copy(self)
+        other.exclude = dict(exclude)
         return other
 
 

@@ -224,7 +224,8 @@ def run(ctx: StageContext) -> None:
     device = next(result.model.parameters()).device
     val = evaluate(result.model, val_samples, device)
     save_model(ws.path(MODEL), result.model, {"trained_steps": result.steps})
-    fitted = result.history.get("horizon", cfg.steps) < cfg.steps
+    horizon = int(result.history.get("horizon", cfg.steps))
+    fitted = horizon < cfg.steps
     plot_losses(result.history, ws.path(LOSS_PNG),
                 f"DSRNet ({cfg.preset}, {'MVR' if cfg.use_mvr else 'no MVR'}), {result.steps} steps"
                 + (f" (of {cfg.steps}: fitted to the time budget)" if fitted else ""),
@@ -238,7 +239,7 @@ def run(ctx: StageContext) -> None:
         "exclude_nearest": cfg.exclude_nearest, "capture_pairs": len(capture_samples),
         "capture_fraction": cfg.capture_fraction, "val_pairs": len(val_samples),
         "steps": result.steps, "steps_planned": cfg.steps, "resumed_from_step": result.resumed_from,
-        "lr_horizon": int(result.history.get("horizon", cfg.steps)),
+        "lr_horizon": horizon,
         "clipped_steps": int(result.history.get("clipped", 0)),
         "stopped_by_time_budget": result.stopped_by_budget,
         "seconds": {"render": render_s, "train": result.seconds,

@@ -120,11 +120,16 @@ def _sources(ctx: StageContext, view: str) -> list[str]:
 G_VOXEL_TUNED = 0.02  # the rounded-step strides were tuned on a 2 cm-voxel G at 320x240
 
 
+def _ramp_width(width: int, g_voxel: float) -> float:
+    """Width x G's voxel relative to the 2 cm G at 320x240 (unrounded)."""
+    return width / 320 * g_voxel / G_VOXEL_TUNED
+
+
 def ramp_scale(width: int, g_voxel: float) -> int:
     """Integer factor for the rounded-step strides: a TSDF rounds a step into a ramp about two
     voxels wide, i.e. `voxel * f / z` pixels, so the strides follow width x voxel relative to the
     2 cm G at 320x240 they were tuned on (1 for global_mesh's automatic 1 cm at 640x480 too)."""
-    return max(1, int(round(width / 320 * g_voxel / G_VOXEL_TUNED)))
+    return max(1, int(round(_ramp_width(width, g_voxel))))
 
 
 def ramp_ratio(width: int, g_voxel: float) -> float:
@@ -133,7 +138,7 @@ def ramp_ratio(width: int, g_voxel: float) -> float:
     goes below 1 for a G finer than 1 cm at 640x480, whose edges are misplaced and rounded over
     proportionally fewer pixels: a 5 mm G at 640x480 gives 0.5. It is exactly 1 for the two
     configurations the distances were tuned on (2 cm at 320x240, 1 cm at 640x480)."""
-    return round(width / 320 * g_voxel / G_VOXEL_TUNED, 3)
+    return round(_ramp_width(width, g_voxel), 3)
 
 
 def g_trust_auto(width: int) -> int:
