@@ -241,6 +241,8 @@ def run(ctx: StageContext) -> None:
         "steps": result.steps, "steps_planned": cfg.steps, "resumed_from_step": result.resumed_from,
         "lr_horizon": horizon,
         "clipped_steps": int(result.history.get("clipped", 0)),
+        "val_curve": [[int(a), float(b)] for a, b in zip(result.history.get("val_step", []),
+                                                         result.history.get("val_psnr", []))],
         "stopped_by_time_budget": result.stopped_by_budget,
         "seconds": {"render": render_s, "train": result.seconds,
                     "total": time.perf_counter() - t_start},

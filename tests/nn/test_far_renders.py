@@ -67,6 +67,7 @@ def test_stage_trains_on_far_renders_of_training_views(gt_ws):
     rep = json.loads((gt_ws / "nn" / "train.json").read_text())
     assert rep["exclude_nearest"] == 2 and rep["far_pairs"] > 0
     assert rep["train_pairs"] == 2 * rep["far_pairs"]   # one far pair per leave-one-out pair
+    assert [s for s, _ in rep["val_curve"]] == [2]      # validated at the last step
     assert not (gt_ws / "nn" / "cache").exists()
     # the trained net through `ibr render`, with the mirror-image self-ensemble
     out = gt_ws / "renders" / "cli_se"
