@@ -13,7 +13,7 @@ import logging
 import sys
 from pathlib import Path
 
-from .config import describe_fields
+from .config import describe_fields, nest
 from .errors import InputError
 
 log = logging.getLogger("ibr_pipeline")
@@ -113,9 +113,10 @@ def _parse_overrides(items: list[str]) -> dict[str, dict]:
         key, sep, value = item.partition("=")
         stage, dot, name = key.partition(".")
         if not sep or not dot or not stage or not name:
-            raise InputError(f"--set {item!r}: expected STAGE.FIELD=VALUE")
+            raise InputError(f"--set {item!r}: expected STAGE.FIELD=VALUE (STAGE.TABLE.FIELD=VALUE "
+                             "for nested options)")
         out.setdefault(stage, {})[name] = value
-    return out
+    return {stage: nest(fields) for stage, fields in out.items()}
 
 
 def _setup_logging(verbose: bool, quiet: bool) -> None:
@@ -235,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "func", None) is not None:
             return args.func(args)
         cfg = {k[5:]: v for k, v in vars(args).items() if k.startswith("cfg__") and v is not None}
-        return _cmd_run(args, only=args.command, overrides={args.command: cfg})
+        return _cmd_run(args, only=args.command, overrides={args.command: nest(cfg)})
     except InputError as e:
         print(f"ibr: error: {e}", file=sys.stderr)
         return e.exit_code

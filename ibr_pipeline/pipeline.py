@@ -6,6 +6,7 @@ exits with nothing written.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -14,8 +15,9 @@ from typing import Sequence
 from .config import StageConfig, build_config
 from .errors import ConfigError, InputError
 from .executors import Executor, LocalExecutor
-from .runner import (HashCache, Stage, StageContext, StagePlan, error_line, expand, format_traceback,
-                     make_record, output_record, plan_stage, run_view_task, write_record)
+from .runner import (HashCache, Stage, StageContext, StagePlan, error_line, expand, fingerprint,
+                     format_traceback, make_record, output_record, plan_stage, run_view_task,
+                     write_record)
 from .workspace import Workspace, atomic_path, view_key
 
 log = logging.getLogger("ibr_pipeline")
@@ -100,6 +102,7 @@ class StageResult:
 def _run_whole(stage: Stage, ctx: StageContext, plan: StagePlan) -> StageResult:
     ws = ctx.ws
     t0 = time.perf_counter()
+    ctx = dataclasses.replace(ctx, fingerprint=fingerprint(stage, ctx.config, plan.input_hashes))
     try:
         stage.run(ctx)
         outputs = output_record(expand(stage.outputs, ctx), ws)

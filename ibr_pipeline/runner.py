@@ -34,13 +34,16 @@ IOSpec = Union[Sequence[str], Callable[..., Sequence[str]]]
 
 @dataclass(frozen=True)
 class StageContext:
-    """What a stage function receives: the workspace, its validated config, the scene manifest."""
+    """What a stage function receives: the workspace, its validated config, the scene manifest,
+    and (whole-scene stages) the fingerprint the runner will record for this run: a stage keeps
+    resumable work (caches, checkpoints) under it instead of hashing anything itself."""
 
     ws: Workspace
     stage: str
     config: StageConfig
     scene: object | None = None  # scene.Scene once `ingest` has run
     progress: bool = True        # False with `ibr ... --no-progress`: the stage's own bars too
+    fingerprint: str = ""
 
     def path(self, key: str) -> Path:
         return self.ws.path(key)
@@ -177,6 +180,14 @@ def hash_inputs(keys: Sequence[str], ws: Workspace, hashes: HashCache) -> dict[s
     return {k: hashes.digest(ws.path(k)) for k in keys}
 
 
+def fingerprint(stage: Stage, config: StageConfig, inputs: dict[str, str | None]) -> str:
+    """What decides a stage's outputs: its code version, the config fields that affect them
+    (Options.fingerprint) and the content hashes of its inputs."""
+    blob = json.dumps({"version": stage.version, "config": config.fingerprint(), "inputs": inputs},
+                      sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:24]
+
+
 def output_record(keys: Sequence[str], ws: Workspace) -> dict:
     """Hash the declared outputs after a stage ran; a missing one is a bug in the stage."""
     out = {}
@@ -229,7 +240,7 @@ def plan_stage(stage: Stage, ctx: StageContext, hashes: HashCache, force: bool,
         return StagePlan(stage, "will run", [f"upstream stage {upstream_running!r} will run"])
     if stage.needs_scene and ctx.scene is None:
         return StagePlan(stage, "blocked", ["no scene manifest: stage 'ingest' has not run"])
-    config = ctx.config.to_dict()
+    config = ctx.config.fingerprint()
     shared = hash_inputs(expand(stage.inputs, ctx), ws, hashes)
     missing = [k for k, v in shared.items() if v is None]
     if missing:
@@ -265,7 +276,7 @@ def plan_stage(stage: Stage, ctx: StageContext, hashes: HashCache, force: bool,
 def make_record(stage: Stage, ctx: StageContext, status: str, inputs: dict, view: str | None = None,
                 outputs: dict | None = None, seconds: float = 0.0, error: str = "") -> dict:
     rec = {"stage": stage.name, "status": status, "version": stage.version,
-           "config": ctx.config.to_dict(), "inputs": inputs, "outputs": outputs or {},
+           "config": ctx.config.fingerprint(), "inputs": inputs, "outputs": outputs or {},
            "seconds": round(seconds, 4), "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
     if view is not None:
         rec["view"] = view

@@ -285,7 +285,7 @@ def main(argv=None) -> int:
               "capture_pairs": len(cap), "capture_fraction": args.capture_fraction,
               "threads": cpu_threads(args.threads) if device.type == "cpu" else None,
               "data_seconds": time.perf_counter() - t0}
-    opts = TrainOptions(steps=args.steps, time_budget_s=args.time_budget, batch=args.batch,
+    opts = TrainOptions(steps=args.steps, batch=args.batch,
                         crop=args.crop, lr=args.lr, seed=args.seed, device=str(device),
                         threads=args.threads, checkpoint_every=max(args.steps // 6, 1),
                         progress=False, capture_fraction=args.capture_fraction)
@@ -305,7 +305,7 @@ def main(argv=None) -> int:
         variants = []
     for key, mvr in variants:
         cfg = preset(args.preset, use_mvr=mvr)
-        r = train(cfg, tr, va, opts, capture_samples=cap)
+        r = train(cfg, tr, va, opts, capture_samples=cap, time_budget_s=args.time_budget)
         models[key] = r.model
         trainings[key] = {"steps": r.steps, "seconds": r.seconds,
                           "s_per_step": r.seconds / max(r.steps - r.resumed_from, 1),

@@ -47,7 +47,7 @@ def settings(grid: str) -> list[Setting]:
         Setting("tri_low", "per-view vertex budget 5 000 per 640x480 (default 20 000)",
                 {"view_mesh": {"max_vertices_640x480": 5000}}),
         Setting("blend_2", "blend at most the 2 closest selected views",
-                {"render_views": {"max_views": 2}}),
+                {"render_views": {"renderer": {"max_views": 2}}}),
         Setting("half_res", "images at half resolution", scale=0.5),
         Setting("views_50", "half of the capture views", views=0.5),
     ]
@@ -56,11 +56,11 @@ def settings(grid: str) -> list[Setting]:
             Setting("tri_high", "per-view vertex budget 40 000 per 640x480 (the paper's)",
                     {"view_mesh": {"max_vertices_640x480": 40000}}),
             Setting("blend_4", "blend at most the 4 closest selected views",
-                    {"render_views": {"max_views": 4}}),
+                    {"render_views": {"renderer": {"max_views": 4}}}),
             Setting("no_warp", "reflection without the ARAP grid warp (Eqs. 4-5)",
-                    {"reflection": {"use_warp": False}}),
+                    {"reflection": {"decompose": {"use_warp": False}}}),
             Setting("multiview", "reflection with the multi-view pass (Eqs. 11-13)",
-                    {"reflection": {"multiview": True}}),
+                    {"reflection": {"decompose": {"multiview": True}}}),
             Setting("views_25", "a quarter of the capture views", views=0.25),
         ]
     return s

@@ -138,23 +138,29 @@ def plane_accuracy(ws, scene: Path) -> list[dict]:
 # Both call the stage's own per-reflector decomposition (`stages.reflection._decompose_reflector`)
 # on a Loader of the workspace, in float (no 8-bit PNG round trip), one config per row.
 _NO_V = {"optimise_m1_vertices": False}  # rows 0-6 as measured before M1's vertices existed
+
+
+def _d(over: dict) -> dict:
+    return {"decompose": over}
+
+
 ABLATION = [  # cumulative rows of the issue's table, then the additions of this implementation
-    ("init only (Eq. 6, no warp)", {"use_warp": False, "outer_iterations": 0, "use_prior": False,
-                                    **_NO_V}),
-    ("+ optimisation (Eq. 7)", {"use_warp": False, "use_prior": False, **_NO_V}),
-    ("+ multi-view consistency (Eqs. 11-13)", {"use_warp": False, "use_prior": False,
-                                               "multiview": True, **_NO_V}),
-    ("+ ARAP warp (Eqs. 4-5) = paper", {"use_prior": False, "multiview": True, **_NO_V}),
-    ("init only + ARAP warp", {"outer_iterations": 0, "use_prior": False, **_NO_V}),
-    ("paper without multi-view", {"use_prior": False, **_NO_V}),
-    ("+ reflected-scene prior, multi-view", {"multiview": True, **_NO_V}),
-    ("stage defaults (prior, no multi-view)", {}),
-    ("stage defaults, M1 vertices off", {"optimise_m1_vertices": False}),
-    ("+ M1 vertices (cotangent Laplacian)", {"optimise_m1_vertices": True}),
-    ("paper without multi-view + M1 vertices", {"use_prior": False, "optimise_m1_vertices": True}),
-    ("+ M0 vertices (cotangent Laplacian)", {"optimise_m0_vertices": True}),
-    ("paper without multi-view + M0 vertices", {"use_prior": False, "optimise_m0_vertices": True}),
-    ("+ M0 and M1 vertices", {"optimise_m0_vertices": True, "optimise_m1_vertices": True}),
+    ("init only (Eq. 6, no warp)", _d({"use_warp": False, "outer_iterations": 0, "lambda_scene": 0.0,
+                                    **_NO_V})),
+    ("+ optimisation (Eq. 7)", _d({"use_warp": False, "lambda_scene": 0.0, **_NO_V})),
+    ("+ multi-view consistency (Eqs. 11-13)", _d({"use_warp": False, "lambda_scene": 0.0,
+                                               "multiview": True, **_NO_V})),
+    ("+ ARAP warp (Eqs. 4-5) = paper", _d({"lambda_scene": 0.0, "multiview": True, **_NO_V})),
+    ("init only + ARAP warp", _d({"outer_iterations": 0, "lambda_scene": 0.0, **_NO_V})),
+    ("paper without multi-view", _d({"lambda_scene": 0.0, **_NO_V})),
+    ("+ reflected-scene prior, multi-view", _d({"multiview": True, **_NO_V})),
+    ("stage defaults (prior, no multi-view)", _d({})),
+    ("stage defaults, M1 vertices off", _d({"optimise_m1_vertices": False})),
+    ("+ M1 vertices (cotangent Laplacian)", _d({"optimise_m1_vertices": True})),
+    ("paper without multi-view + M1 vertices", _d({"lambda_scene": 0.0, "optimise_m1_vertices": True})),
+    ("+ M0 vertices (cotangent Laplacian)", _d({"optimise_m0_vertices": True})),
+    ("paper without multi-view + M0 vertices", _d({"lambda_scene": 0.0, "optimise_m0_vertices": True})),
+    ("+ M0 and M1 vertices", _d({"optimise_m0_vertices": True, "optimise_m1_vertices": True})),
 ]
 
 
@@ -219,12 +225,12 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
     Also M1's and M0's depth errors in the mask (mean |D (1 + delta) / D_true - 1|, median over
     views; M0's truth is the GT depth, which --depth-noise perturbs)."""
     from ..config import build_config
-    from ..stages.reflection import ReflectionConfig, _decompose_reflector, options
+    from ..stages.reflection import ReflectionConfig, _decompose_reflector
     _, loader = _loader(ws, base, m1_noise)
     out = []
     for label, over in rows or ABLATION:
         cfg = build_config(ReflectionConfig, "reflection", base, over)
-        opts = options(cfg)
+        opts = cfg.decompose
         _forget_passes(loader)
         per: dict = {}
         c0, t0 = time.process_time(), time.perf_counter()
@@ -347,7 +353,8 @@ def main(argv=None) -> int:
     if args.ablation or args.heldout or args.timing:
         sets = {k: _json_or_str(v) for k, v in (a.split("=", 1) for a in args.set)}
         result["set"] = sets
-        base = {"work_scale": args.scale, "detect": "off", **sets}
+        from ..config import nest
+        base = {"work_scale": args.scale, "detect": "off", **nest(sets)}
         if args.ablation:
             rows = ([ABLATION[int(i)] for i in args.rows.split(",")] if args.rows else None)
             result["ablation"] = ablation(ws, scene, base, rows, args.m1_noise)

@@ -142,10 +142,10 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
     from ..config import build_config
     from ..geometry.decompose import pose_distance
     from ..render.blend import view_weights
-    from ..stages.reflection import ReflectionConfig, _decompose_reflector, options
+    from ..stages.reflection import ReflectionConfig, _decompose_reflector
     _, loader = _loader(ws, base, m1_noise)
     cfg = build_config(ReflectionConfig, "reflection", base)
-    opts = options(cfg)
+    opts = cfg.decompose
     names = list(loader.names)
     per: dict = {}
     kinds = ("layers", "unsplit", "gt_layers", "perfect_r")

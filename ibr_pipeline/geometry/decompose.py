@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import Options, param
+from ..errors import ConfigError
 from ..scene import Camera
 from .block_pcg import _block_pcg  # moved out (module size); tests import it from here
 
@@ -54,39 +56,73 @@ class ViewGeom:
 
 
 @dataclass(frozen=True)
-class DecomposeOptions:
-    """Xu et al. §4.3 parameters (defaults as in the paper)."""
+class DecomposeOptions(Options):
+    """Xu et al. §4.3 parameters; the `reflection` stage embeds them as [reflection.decompose]."""
 
-    max_neighbours: int = 6  # §4.3.1: top six
-    min_overlap: float = 0.3  # §4.3.1: > 30 % depth overlap
-    overlap_tol: float = 0.05  # §4.3.1: depth difference < 0.05 * min(depth)
-    grid: tuple[int, int] = (40, 30)  # §4.3.1: 40 x 30 grid
-    w_r: float = 1.2  # Eq. 5
-    w_a: float = 0.5  # Eq. 5
-    gn_iterations: int = 5  # §4.3.1: 5 Gauss-Newton iterations
-    use_warp: bool = True  # refine w by the ARAP grid warp in the initialisation
-    lambda_s: float = 0.04  # Eq. 7
-    lambda_p: float = 0.01  # Eq. 7
-    lambda_mv: float = 0.05  # Eq. 7 after aggregation (0 in the first pass)
-    outer_iterations: int = 2  # §4.3.3: "usually two iterations"
-    image_iterations: int = 60  # L-BFGS-B iterations of one image step
-    pose_iterations: int = 10  # L-BFGS iterations of one (R, T) step
-    optimise_pose: bool = True
-    saturation: float = 0.98  # highlights: pixels with a channel >= this are left out of E_d
-    visibility_tol: float = 0.05  # relative depth tolerance of the occlusion tests
-    cg_iterations: int = 150  # preconditioned CG iterations of one image-step solve
-    resolve_iterations: int = 50  # CG iterations of each warm-started active-set re-solve
-    pose_samples: int = 20000  # data points used by the (R, T) LM steps (deterministic stride)
-    lambda_scene: float = 0.5  # weight of the reflected-scene colour prior (reflection_prior.py)
-    # M0 / M1 vertices (Eq. 7 variables M^0,1, Eq. 9 mesh part; geometry_step.py): relative
-    # depth offsets of a control grid; the m1_* settings below serve both layers
-    optimise_m1_vertices: bool = False
-    optimise_m0_vertices: bool = False
-    lambda_lap: float = 0.04  # weight of E_lap = delta^T L_cot delta (paper: lambda_s = 0.04)
-    m1_cell: int = 16  # control-mesh spacing (working pixels)
-    m1_iterations: int = 5  # LM iterations per vertex step
-    m1_samples: int = 60000  # data points used by the LM iterations (deterministic stride)
-    m1_max_offset: float = 0.1  # |delta| bound (relative depth)
+    max_neighbours: int = param(6, "N_k size (§4.3.1: top six)", min=1, max=30)
+    min_neighbours: int = param(1, "with fewer neighbours the decomposition is discarded (not "
+                                "for mirrors)", min=1, max=30)
+    min_overlap: float = param(0.3, "neighbour depth-overlap fraction (§4.3.1: > 30 %)",
+                               min=0.0, max=1.0)
+    overlap_tol: float = param(0.05, "depth-overlap tolerance x min depth (§4.3.1: 0.05)",
+                               min=1e-4, max=1.0)
+    grid: tuple[int, int] = param((40, 30), "ARAP warp grid cells across, down (§4.3.1: 40 x 30)",
+                                  min=1, max=400)
+    w_r: float = param(1.2, "Eq. 5 offset regulariser weight", min=0.0, max=1e4)
+    w_a: float = param(0.5, "Eq. 5 ARAP weight", min=0.0, max=1e4)
+    gn_iterations: int = param(5, "Gauss-Newton iterations of the grid warp (§4.3.1: 5)",
+                               min=0, max=100)
+    use_warp: bool = param(True, "refine the initial flow by the ARAP grid warp (Eqs. 4-5)")
+    lambda_s: float = param(0.04, "Eq. 7 smoothness weight", min=0.0, max=1e4)
+    lambda_p: float = param(0.0, "Eq. 7 prior weight. The paper's 0.01 pulls R = beta I1 towards "
+                            "0 when a view has only 2-3 partial neighbours (docs/REFLECTION.md)",
+                            min=0.0, max=1e4)
+    lambda_mv: float = param(0.05, "Eq. 7 multi-view weight in the second pass (§4.3.3)",
+                             min=0.0, max=1e4)
+    multiview: bool = param(False, "second pass with multi-view consistency (§4.3.3, Eqs. 11-13). "
+                            "Off by default: it decomposes every neighbour too (~7x the time)")
+    outer_iterations: int = param(2, "alternations of image and geometry steps per pass "
+                                  "(§4.3.3: usually two)", min=0, max=50)
+    cg_iterations: int = param(150, "preconditioned CG iterations of an image-step solve (the "
+                               "image step is a sparse linear least-squares problem)",
+                               min=1, max=10000)
+    resolve_iterations: int = param(50, "CG iterations of each warm-started active-set re-solve",
+                                    min=1, max=10000)
+    optimise_pose: bool = param(True, "refine the rigid transform (R, T) of M1 (Eq. 7)")
+    pose_iterations: int = param(5, "Gauss-Newton iterations per (R, T) step", min=0, max=1000)
+    pose_samples: int = param(20000, "data points of the (R, T) steps (deterministic stride)",
+                              min=100, max=10**8)
+    saturation: float = param(0.98, "highlights: pixels with a channel at or above this are left "
+                              "out of E_d", min=0.5, max=1.0)
+    visibility_tol: float = param(0.05, "relative depth tolerance of the occlusion tests",
+                                  min=1e-4, max=1.0)
+    lambda_scene: float = param(2.0, "weight of the reflected-scene colour prior in the image "
+                                "step (our addition: R = beta I1 initialised and regularised by "
+                                "the colour other views see directly, reflection_prior.py); 0 = "
+                                "no prior", min=0.0, max=1e4)
+    optimise_m1_vertices: bool = param(False, "optimise M1's vertices (Eq. 7 variables M^1 with "
+                                       "Eq. 9's cotangent Laplacian): relative depth offsets of a "
+                                       "control grid along the view's rays. Off by default: no "
+                                       "PSNR gain on the bench (docs/REFLECTION.md)")
+    optimise_m0_vertices: bool = param(False, "optimise M0's vertices the same way, through the "
+                                       "surface positions of E_d (docs/REFLECTION.md)")
+    lambda_lap: float = param(0.04, "weight of E_lap = delta^T L_cot delta for M0's and M1's "
+                              "offsets (the paper's lambda_s = 0.04 for E_s)", min=0.0, max=1e6)
+    m1_cell_640: int = param(16, "M0 / M1 control-grid spacing in pixels at 640 px width, scaled "
+                             "with the view's width (the 40x30 warp grid's cell)", min=2, max=512)
+    m1_iterations: int = param(5, "LM iterations per M0 / M1 vertex step", min=0, max=1000)
+    m1_samples: int = param(60000, "data points of the vertex steps (deterministic stride)",
+                            min=100, max=10**8)
+    m1_max_offset: float = param(0.1, "bound of the vertex offsets |delta| (relative depth)",
+                                 min=0.0, max=1.0)
+
+    def check(self, prefix: str) -> None:
+        if self.min_neighbours > self.max_neighbours:
+            raise ConfigError(prefix + "min_neighbours", "must be <= max_neighbours")
+
+    def m1_cell(self, width: int) -> int:
+        """The control-grid spacing in pixels of a view `width` pixels wide."""
+        return max(2, round(self.m1_cell_640 * width / 640))
 
 
 def project(camera: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -495,7 +531,8 @@ def decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, bet
     crop, (y0, y1, x0, x1) = crop_view(ref)
     res = _decompose(crop, nbs, opts, beta=beta, mirror=mirror, aggregate_from=aggregate_from,
                      R_init=None if R_init is None else R_init[y0:y1, x0:x1], stages=stages,
-                     R_prior=None if R_prior is None else R_prior[y0:y1, x0:x1])
+                     R_prior=None if R_prior is None else R_prior[y0:y1, x0:x1],
+                     m1_cell=opts.m1_cell(ref.camera.width))
     R = np.zeros_like(ref.image)
     R[y0:y1, x0:x1] = res["R"]
     res["R"] = R
@@ -510,7 +547,7 @@ def decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, bet
 def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, beta: float = 1.0,
                mirror: bool = False, aggregate_from: dict[str, np.ndarray] | None = None,
                R_init: np.ndarray | None = None, stages: tuple[str, ...] = ("init", "opt"),
-               R_prior: np.ndarray | None = None) -> dict:
+               R_prior: np.ndarray | None = None, m1_cell: int | None = None) -> dict:
     """One per-view decomposition pass. Returns {"R": (H, W, 3) reflection component beta*I1,
     "history": energy log, "pose": (6,) (R, T) of M1, "neighbours": names used}.
 
@@ -541,7 +578,8 @@ def _decompose(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions, *, be
     for layer, on in (("a", opts.optimise_m0_vertices), ("b", opts.optimise_m1_vertices)):
         if on and terms:  # M0's / M1's vertices (Eq. 7 variables M^0,1, Eq. 9 mesh part)
             prob.offsets[layer] = build_offsets(ref, terms, {n.name: n.camera.center for n in nbs},
-                                                opts.m1_cell, opts.lambda_lap, layer)
+                                                m1_cell or opts.m1_cell(ref.camera.width),
+                                                opts.lambda_lap, layer)
     if R_prior is not None:
         prob.prior = np.asarray(R_prior, np.float64).reshape(-1, 3)[prob.flat]
     if aggregate_from is not None:

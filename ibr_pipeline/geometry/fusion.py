@@ -21,6 +21,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from ..config import Options, param
+from ..errors import ConfigError
 from ..io.mesh import Mesh
 from ..scene import Camera, Reflector
 
@@ -154,15 +156,26 @@ def mirror_world_points(points: np.ndarray, reflectors: Sequence[Reflector],
 
 # --- TSDF fusion -----------------------------------------------------------------------------------
 @dataclass(frozen=True)
-class FusionOptions:
-    voxel_size: float = 0.02          # metres
-    trunc_voxels: float = 4.0         # truncation distance in voxels
-    depth_max: float = 6.0            # metres: farther measurements are ignored
-    block_resolution: int = 8
-    block_count: int = 40000
-    weight_threshold: float = 0.5     # marching cubes only where the summed weight reaches this
-    min_component: float = 0.002      # drop connected components smaller than this fraction of faces
-    device: str = "CPU:0"
+class FusionOptions(Options):
+    """TSDF fusion of depth frames; the `global_mesh` stage embeds these as [global_mesh.fusion]."""
+
+    voxel_size: float = param(0.0, "TSDF voxel size in metres (SfM units without a scale); 0 = "
+                              "auto_voxel_size: twice the depth frames' pixel footprint at their "
+                              "median depth, rounded to 5 mm", min=0.0, max=1.0)
+    trunc_voxels: float = param(4.0, "truncation distance in voxels", min=1.0, max=64.0)
+    depth_max: float = param(6.0, "ignore depth beyond this (metres)", min=0.1, max=1000.0)
+    weight_threshold: float = param(0.5, "marching cubes only where the summed TSDF weight "
+                                    "(frames) reaches this", min=0.0, max=1000.0)
+    min_component: float = param(0.002, "drop connected components below this fraction of all "
+                                 "faces", min=0.0, max=0.5)
+    block_resolution: int = param(8, "voxels per side of a VoxelBlockGrid block", min=2, max=64)
+    block_count: int = param(40000, "VoxelBlockGrid blocks allocated", min=100, max=10**8)
+    device: str = param("CPU:0", "open3d device of the grid", affects_output=False)
+
+    def check(self, prefix: str) -> None:
+        if 0.0 < self.voxel_size < 1e-4:
+            raise ConfigError(prefix + "voxel_size", f"must be 0 (auto) or at least 1e-4, got "
+                              f"{self.voxel_size}")
 
 
 AUTO_VOXEL_FOOTPRINTS = 2.0   # voxel = this many depth-frame pixel footprints
@@ -198,9 +211,10 @@ def auto_voxel_size(samples: Iterable[tuple[np.ndarray, Camera]], metric: bool =
 
 
 def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
-              options: FusionOptions = FusionOptions(), progress: bool = False,
+              options: FusionOptions, progress: bool = False,
               total: int | None = None) -> tuple[Mesh, dict]:
-    """Fuse (depth (h, w) metres with 0 = none, camera, colour (H, W, 3) in [0, 1] or None) frames.
+    """Fuse (depth (h, w) metres with 0 = none, camera, colour (H, W, 3) in [0, 1] or None) frames
+    with a resolved voxel size (options.voxel_size > 0; 0 means auto, see auto_voxel_size).
 
     The camera is resized to the depth frame's size (scene.py: a depth frame covers the same view
     as its image); the colour is resized to the depth size. Returns the cleaned mesh (world space,
@@ -212,6 +226,9 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
     import open3d as o3d
     import open3d.core as o3c
 
+    if options.voxel_size <= 0:
+        raise ValueError("tsdf_fuse: voxel_size must be > 0 (0 = auto: resolve it with "
+                         "auto_voxel_size first)")
     dev = o3c.Device(options.device)
     vbg = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),

@@ -24,7 +24,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-PERCEPTUAL_WEIGHT = 0.1  # §5.2.2: "Weight w (default 0.1)"
+from .options import PERCEPTUAL_WEIGHT
+
 WARP_GAUSSIAN_SIZE = 5  # §5.2.2: "the Gaussian filter with 5x5 kernels"
 
 

@@ -18,7 +18,7 @@ import contextlib
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -27,42 +27,12 @@ import torch
 
 from ..workspace import atomic_path
 from .data import Sample, to_tensors
-from .losses import PERCEPTUAL_WEIGHT, build_features, image_loss, warp_loss
+from .losses import build_features, image_loss, warp_loss
 from .model import DSRNet, DSRNetConfig
+from .options import TrainOptions
 
 log = logging.getLogger("ibr_pipeline.nn.train")
 MODEL_FORMAT = "ibr_pipeline.dsrnet/1"
-
-
-@dataclass(frozen=True)
-class TrainOptions:
-    steps: int = 1200
-    time_budget_s: float = 120.0  # stop (and save) when exceeded; 0 = no budget
-    batch: int = 4
-    crop: int = 48  # low-resolution crop side
-    lr: float = 1e-3
-    # linear learning-rate warm-up: without it Adam's first sign-sized steps on every layer blew
-    # the zero-initialised residual up and the net settled at "no residual" = bicubic for good
-    warmup_steps: int = 100
-    perceptual_weight: float = PERCEPTUAL_WEIGHT  # §5.2.2: w = 0.1
-    l1_weight: float = 0.0  # optional L1 image term (not in Eq. of §5.2.2; Table 4 mentions L1)
-    warp_weight: float = 1.0  # weight of L_warp (the paper gives none; see docs/DSRNET.md)
-    vgg_weights: str = ""  # user-supplied VGG-16 features state dict; "" = fixed filter bank
-    seed: int = 0
-    checkpoint_every: int = 100
-    device: str = "cpu"
-    threads: int = 0  # torch CPU threads; 0 = auto (see `cpu_threads`)
-    flip: bool = True
-    progress: bool = True
-    # share of the crops taken from capture pairs (data.capture_pairs) instead of render pairs;
-    # our extension beyond the paper (docs/DSRNET.md); used only when capture samples are given
-    capture_fraction: float = 0.0
-    # fit the cosine decay to the time budget when `steps` would not fit it (`fitted_horizon`)
-    fit_budget: bool = True
-    # clip the global L2 norm of the gradient to this (0 = off). Our addition: a `paper`-width
-    # run diverged at step ~1770 of 6400 (loss 0.1 -> 1e10 within 30 steps); 1.0 touches only
-    # spikes and a few of the first steps (docs/DSRNET.md)
-    grad_clip: float = 1.0
 
 
 @dataclass
@@ -73,10 +43,6 @@ class TrainResult:
     seconds: float
     history: dict = field(default_factory=dict)
     resumed_from: int = 0
-
-
-# options that do not change what a step computes: a resumed run may differ in them
-_RUN_ONLY = ("time_budget_s", "checkpoint_every", "device", "threads", "progress")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -229,20 +195,22 @@ def fitted_horizon(planned: int, step: int, steps_timed: int, timed_s: float,
 
 def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Sequence[Sample],
           opts: TrainOptions, checkpoint: Path | None = None, fingerprint: str = "",
-          capture_samples: Sequence[Sample] = ()) -> TrainResult:
+          capture_samples: Sequence[Sample] = (), time_budget_s: float = 0.0) -> TrainResult:
     """Train a DSRNet; resumes from `checkpoint` when it exists with the same `fingerprint`
-    (the data's, given by the caller) and the same options (those that change the result).
+    (the data's, given by the caller), the same options (those that affect the result) and model.
     `capture_samples` (data.capture_pairs of training views only) are mixed into the batches with
-    probability `opts.capture_fraction` per crop."""
+    probability `opts.capture_fraction` per crop. `time_budget_s` > 0: stop (and save) when the
+    training has run that long; with `opts.fit_budget` the decay is fitted to it."""
     if not train_samples:
         raise ValueError("train: no training samples")
+    if not (time_budget_s >= 0 and math.isfinite(time_budget_s)):
+        raise ValueError(f"train: time_budget_s must be >= 0, got {time_budget_s}")
     device = resolve_device(opts.device)
     torch.manual_seed(opts.seed)
     model = DSRNet(config).to(device).train().to(memory_format=torch.channels_last)
     features = build_features(opts.vgg_weights).to(device)
     optim = torch.optim.Adam(model.parameters(), lr=opts.lr)
-    same = {k: v for k, v in asdict(opts).items() if k not in _RUN_ONLY}
-    fingerprint = fingerprint + "|" + repr(sorted(same.items())) + repr(config)
+    fingerprint = f"{fingerprint}|{opts.digest()}|{config!r}"
     history = {"step": [], "loss": [], "image_loss": [], "warp_loss": [], "val_step": [],
                "val_psnr": [], "val_psnr_bilinear": []}
     start = 0
@@ -259,11 +227,11 @@ def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Se
             log.info("supersample: resuming training at step %d from %s", start, checkpoint)
     with torch_threads(cpu_threads(opts.threads)):
         return _loop(model, features, optim, train_samples, val_samples, opts, checkpoint,
-                     fingerprint, history, start, device, capture_samples)
+                     fingerprint, history, start, device, capture_samples, time_budget_s)
 
 
 def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, fingerprint,
-          history, start, device, capture_samples=()) -> TrainResult:
+          history, start, device, capture_samples=(), budget_s: float = 0.0) -> TrainResult:
     from tqdm import tqdm
 
     clock = _clock
@@ -272,7 +240,7 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
     # cosine horizon: `steps`, or the one a budget fit chose (kept on resume, see `fitted_horizon`)
     horizon = int(history.get("horizon", opts.steps)) if start > 0 else opts.steps
     history["horizon"] = horizon
-    fit = opts.fit_budget and opts.time_budget_s > 0
+    fit = opts.fit_budget and budget_s > 0
     t_fit = 0.0
     bar = tqdm(total=opts.steps, initial=start, desc="supersample: training DSRNet", unit="step",
                disable=not opts.progress, leave=False)
@@ -282,14 +250,14 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
     bilinear = None
     while step < horizon:   # the decay is complete at the horizon (= steps unless fitted)
         now = clock() - t0
-        if opts.time_budget_s > 0 and now > opts.time_budget_s:
+        if budget_s > 0 and now > budget_s:
             stopped = True
             break
         if fit and step - start == FIT_SKIP:
             t_fit = now
         timed = step - start - FIT_SKIP
         if fit and timed > 0 and (timed == FIT_PROBE_STEPS or step % opts.checkpoint_every == 0):
-            horizon = fitted_horizon(opts.steps, step, timed, now - t_fit, opts.time_budget_s - now)
+            horizon = fitted_horizon(opts.steps, step, timed, now - t_fit, budget_s - now)
             history["horizon"] = horizon
         for g in optim.param_groups:
             g["lr"] = _lr_at(opts, step, horizon)

@@ -99,7 +99,7 @@ def main(args: argparse.Namespace) -> int:
         if sampler is None:
             return _err(why)
     out = args.out or ws.path(f"renders/cli_{what}")
-    model = IBRModel.load(ws, layers=not args.single_layer, settings=rv.render_settings(cfg))
+    model = IBRModel.load(ws, layers=not args.single_layer, settings=cfg.renderer)
     frames, rows, prev = [], [], None
     try:
         for i, ((name, cam), ex) in enumerate(tqdm(list(zip(cams, excl)), desc="render",

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..config import Options, param
 from ..errors import InputError
 from ..scene import Camera
 from . import blend, selection
@@ -31,23 +32,36 @@ log = logging.getLogger("ibr_pipeline.render")
 
 
 @dataclass(frozen=True)
-class RenderSettings:
-    """Every constant of §5.1 (the `render_views` stage config carries the same fields)."""
+class RenderSettings(Options):
+    """Every constant of §5.1; the `render_views` stage embeds these as [render_views.renderer]
+    (`ibr render` and `evaluate` read them from there)."""
 
-    lam: float = selection.LAMBDA                 # Eq. 14 λ
-    delta: float = blend.DELTA                    # Eq. 15 δ
-    max_angle: float = selection.MAX_ANGLE_DEG    # §5.1.2
-    max_dist: float = selection.MAX_DIST_M        # §5.1.2
-    angle_bins: int = selection.ANGLE_BINS        # §5.1.2
-    dist_bins: int = selection.DIST_BINS          # §5.1.2
-    cost_margin: float = blend.COST_MARGIN        # §5.1.3
-    depth_tol: float = blend.DEPTH_TOL_M          # §5.1.3
-    feather_px: float = blend.FEATHER_PX          # §5.1.4
-    edge_decay_px: float = blend.EDGE_DECAY_PX    # §5.1.4
-    fill_holes: bool = True                       # §5.1.4 holes
-    hole_decay_px: float = blend.HOLE_DECAY_PX
-    hysteresis: bool = True                       # §5.1.2 temporal hysteresis
-    max_views: int = 0                            # cap on blended views (0 = all selected; ours)
+    lam: float = param(selection.LAMBDA, "Eq. 14 λ: weight of the camera-distance term",
+                       min=0.0, max=100.0)
+    delta: float = param(blend.DELTA, "Eq. 15 δ: blending weight w_k = exp(-d_k/δ)",
+                         min=1e-4, max=10.0)
+    max_angle: float = param(selection.MAX_ANGLE_DEG, "§5.1.2 view selection: largest angle "
+                             "between optical axes (degrees)", min=1.0, max=180.0)
+    max_dist: float = param(selection.MAX_DIST_M, "§5.1.2 view selection: largest distance "
+                            "between optical centres (m)", min=0.01, max=1000.0)
+    angle_bins: int = param(selection.ANGLE_BINS, "§5.1.2: angle intervals per quadrant",
+                            min=1, max=18)
+    dist_bins: int = param(selection.DIST_BINS, "§5.1.2: distance intervals per quadrant",
+                           min=1, max=18)
+    cost_margin: float = param(blend.COST_MARGIN, "§5.1.3 fuzzy depth test: IBR-cost margin",
+                               min=0.0, max=10.0)
+    depth_tol: float = param(blend.DEPTH_TOL_M, "§5.1.3 fuzzy depth test: depth tolerance (m)",
+                             min=1e-4, max=10.0)
+    feather_px: float = param(blend.FEATHER_PX, "§5.1.4 feathering width at image borders (px)",
+                              min=0.0, max=500.0)
+    edge_decay_px: float = param(blend.EDGE_DECAY_PX, "§5.1.4 weight decay around depth edges "
+                                 "(px)", min=0.0, max=100.0)
+    fill_holes: bool = param(True, "fill holes by push-pull (§5.1.4)")
+    hole_decay_px: float = param(blend.HOLE_DECAY_PX, "warped pixels within this distance of a "
+                                 "hole are blended with the fill (ours; px)", min=0.0, max=100.0)
+    hysteresis: bool = param(True, "§5.1.2: keep the previous frame's views along a camera path")
+    max_views: int = param(0, "blend at most this many of the selected views, smallest d_k first "
+                           "(ours, a speed knob); 0 = every view §5.1.2 selects", min=0, max=72)
 
 
 @dataclass

@@ -294,16 +294,15 @@ def _render_config(ctx: StageContext):
 
 def _naive_model(ctx: StageContext):
     from ..render.naive import from_workspace
-    return from_workspace(ctx.ws, lam=_render_config(ctx).lam)
+    return from_workspace(ctx.ws, lam=_render_config(ctx).renderer.lam)
 
 
 def _oracle_model(ctx: StageContext):
     from ..render.oracle import GroundTruth
-    from .render_views import render_settings
     root = ctx.ws.input_root
     if not (root / "gt" / "geom").is_dir() or not (root / "gt" / "mesh.ply").is_file():
         return None
-    return GroundTruth(root).model(layers=True, settings=render_settings(_render_config(ctx)))
+    return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer)
 
 
 def _chart(path: Path, methods: dict) -> None:

@@ -10,6 +10,7 @@ only loads, calls and saves; docs/GLOBAL_MESH.md explains the choices.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ import numpy as np
 
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
+from ..geometry.fusion import FusionOptions
 from ..runner import Stage, StageContext
 
 log = logging.getLogger("ibr_pipeline.global_mesh")
@@ -39,15 +41,7 @@ class GlobalMeshConfig(StageConfig):
     scale: float = param(0.0, "metres per SfM unit when there is no depth (0 = keep SfM units)", min=0.0, max=1e6)
     dense: str = param("auto", "dense geometry: rgbd (TSDF of depth frames), mvs (plane sweep), "
                        "auto = rgbd when every view has depth", choices=("auto", "rgbd", "mvs"))
-    voxel_size: float = param(0.0, "TSDF voxel size in metres (SfM units without scale); 0 = auto: "
-                              "twice the depth frames' pixel footprint at their median depth, rounded "
-                              "to 5 mm (2 cm for 160x120 depth, 1 cm for 320x240 in mirror_room)",
-                              min=0.0, max=1.0)
-    trunc_voxels: float = param(4.0, "TSDF truncation distance in voxels", min=1.0, max=64.0)
-    depth_max: float = param(6.0, "ignore depth beyond this (metres)", min=0.1, max=1000.0)
-    weight_threshold: float = param(0.5, "marching cubes where the TSDF weight (frames) reaches this",
-                                    min=0.0, max=1000.0)
-    min_component: float = param(0.002, "drop mesh components below this fraction of all faces", min=0.0, max=0.5)
+    fusion: FusionOptions = param(FusionOptions(), "TSDF fusion of the depth frames")
     reflector_fill: bool = param(True, "replace reflector pixels by the reflector plane (else drop them)")
     mvs_scale: float = param(0.5, "MVS working resolution relative to the images", min=0.05, max=1.0)
     mvs_sources: int = param(4, "MVS source views per reference view", min=1, max=16)
@@ -69,8 +63,6 @@ class GlobalMeshConfig(StageConfig):
     progress: bool = param(True, "show progress bars")
 
     def check(self, prefix: str) -> None:
-        if 0.0 < self.voxel_size < 1e-4:
-            raise ConfigError(prefix + "voxel_size", f"must be 0 (auto) or at least 1e-4, got {self.voxel_size}")
         if self.mvs_window % 2 == 0:
             raise ConfigError(prefix + "mvs_window", f"must be odd, got {self.mvs_window}")
         if self.mvs_depth_min >= self.mvs_depth_max:
@@ -198,7 +190,7 @@ def _auto_voxel(ctx, cams, depth_views, mvs_depths, metric: bool) -> float:
     try:
         v = auto_voxel_size(samples, metric)
     except ValueError:
-        raise InputError(f"{ctx.ws.input_root}: no depth in any frame (global_mesh.voxel_size = 0 "
+        raise InputError(f"{ctx.ws.input_root}: no depth in any frame (global_mesh.fusion.voxel_size = 0 "
                          "needs some to choose the voxel size)") from None
     log.info("global_mesh: voxel size %.4g %s (auto: 2 depth-pixel footprints at the median depth)",
              v, "m" if metric else "SfM units")
@@ -271,7 +263,7 @@ def _mvs_depths(ctx, cams, rec, report) -> dict:
 
 
 def run(ctx: StageContext) -> None:
-    from ..geometry.fusion import FusionOptions, apply_reflectors, tsdf_fuse
+    from ..geometry.fusion import apply_reflectors, tsdf_fuse
     from ..io.colmap import write_colmap_model
     from ..io.images import read_image
     from ..io.mesh import write_ply
@@ -309,11 +301,10 @@ def run(ctx: StageContext) -> None:
                     "world) is fused into the global mesh as if it were real geometry")
     stats = {"reflector_pixels": 0}
     depths = _mvs_depths(ctx, cams, rec, report) if dense == "mvs" else None
-    voxel = cfg.voxel_size or _auto_voxel(ctx, cams, depth_views, depths, report.get("units") == "metres")
-    report["voxel_size"] = {"value": voxel, "auto": not cfg.voxel_size}
-    fopts = FusionOptions(voxel_size=voxel, trunc_voxels=cfg.trunc_voxels,
-                          depth_max=cfg.depth_max, weight_threshold=cfg.weight_threshold,
-                          min_component=cfg.min_component)
+    voxel = cfg.fusion.voxel_size or _auto_voxel(ctx, cams, depth_views, depths,
+                                                 report.get("units") == "metres")
+    report["voxel_size"] = {"value": voxel, "auto": not cfg.fusion.voxel_size}
+    fopts = dataclasses.replace(cfg.fusion, voxel_size=voxel)
     if dense == "rgbd":
         frames = _depth_frames(ctx, cams, depth_views, reflectors, view_masks, stats)
     else:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from ..config import StageConfig, param
 from ..errors import InputError
+from ..geometry.decompose import DecomposeOptions
 from ..runner import Stage, StageContext
 from .common import REGISTERED_CAMERAS, registered_cameras, registered_views
 
@@ -47,57 +48,12 @@ class ReflectionConfig(StageConfig):
     work_scale: float = param(1.0, "working resolution as a fraction of the image size (demo budget; "
                               "1.0 = full quality)",
                               min=0.1, max=1.0)
-    max_neighbours: int = param(6, "N_k size (§4.3.1: top 6)", min=1, max=30)
-    min_neighbours: int = param(1, "fewer neighbours: decomposition discarded (not for mirrors)",
-                                min=1, max=30)
-    min_overlap: float = param(0.3, "neighbour depth-overlap fraction (§4.3.1: 30 %)", min=0.0, max=1.0)
-    overlap_tol: float = param(0.05, "depth-overlap tolerance x min depth (§4.3.1: 0.05)",
-                               min=1e-4, max=1.0)
-    grid_x: int = param(40, "ARAP warp grid cells across (§4.3.1: 40)", min=1, max=400)
-    grid_y: int = param(30, "ARAP warp grid cells down (§4.3.1: 30)", min=1, max=400)
-    w_r: float = param(1.2, "Eq. 5 offset regulariser weight (1.2)", min=0.0, max=1e4)
-    w_a: float = param(0.5, "Eq. 5 ARAP weight (0.5)", min=0.0, max=1e4)
-    gn_iterations: int = param(5, "Gauss-Newton iterations of the grid warp (5)", min=0, max=100)
-    use_warp: bool = param(True, "refine the init flow by the ARAP grid warp (Eqs. 4-5)")
-    lambda_s: float = param(0.04, "Eq. 7 smoothness weight (0.04)", min=0.0, max=1e4)
-    lambda_p: float = param(0.0, "Eq. 7 prior weight (paper: 0.01; 0 by default here: with 2-3 "
-                            "partial neighbours it pulls R = beta I1 towards 0, see "
-                            "docs/REFLECTION.md)", min=0.0, max=1e4)
-    lambda_mv: float = param(0.05, "Eq. 7 multi-view weight after aggregation (0.05)", min=0.0, max=1e4)
-    outer_iterations: int = param(2, "alternations image/geometry per pass", min=0, max=50)
-    image_iterations: int = param(150, "preconditioned CG iterations per image-step solve (the "
-                                  "image step is a sparse linear least-squares problem)",
-                                  min=1, max=10000)
-    pose_iterations: int = param(5, "L-BFGS iterations per (R, T) step", min=0, max=1000)
-    multiview: bool = param(False, "second pass with multi-view consistency (§4.3.3, Eqs. 11-13); "
-                             "off by default: it decomposes every neighbour too (~7x the time)")
-    saturation: float = param(0.98, "highlight threshold: pixels left out of E_d", min=0.5, max=1.0)
     min_mask_pixels: int = param(100, "smaller reflector masks (at working size) are ignored",
                                  min=1, max=10**7)
     min_gap: float = param(0.03, "M1: reflected-ray hits closer than this to the plane (noise of a "
                            "fused G) are skipped (m)", min=0.0, max=1.0)
-    use_prior: bool = param(True, "initialise / regularise R = beta I1 by the colour of the "
-                            "reflected scene point seen directly by other views "
-                            "(geometry/reflection_prior.py)")
-    lambda_scene: float = param(2.0, "weight of that prior in the image step", min=0.0, max=1e4)
     prior_tol: float = param(0.03, "depth tolerance (x depth) of the prior's visibility test",
                              min=1e-4, max=1.0)
-    optimise_m1_vertices: bool = param(False, "optimise M1's vertices (Eq. 7 variables M^1, with "
-                                       "the cotangent-Laplacian term of Eq. 9): relative depth "
-                                       "offsets of a control grid along the view's rays "
-                                       "(geometry/geometry_step.py); off by default: no PSNR gain "
-                                       "on the bench, see docs/REFLECTION.md")
-    optimise_m0_vertices: bool = param(False, "optimise M0's vertices (Eq. 7 variables M^0, same "
-                                       "offsets and Laplacian as M1's, through the a_q positions "
-                                       "of E_d); M0.ply is then written with them; off by "
-                                       "default, see docs/REFLECTION.md")
-    lambda_lap: float = param(0.04, "weight of E_lap = delta^T L_cot delta (= the integral of "
-                              "|grad delta|^2 over the pixels; paper: lambda_s = 0.04 for E_s); "
-                              "M0's and M1's offsets",
-                              min=0.0, max=1e6)
-    m1_cell_640: int = param(16, "M0 / M1 control-grid spacing in pixels at 640 px width (scaled with "
-                             "the working width; the 40x30 warp grid's cell)", min=2, max=512)
-    m1_iterations: int = param(5, "LM iterations per M0 / M1 vertex step", min=0, max=1000)
     mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
     m1_simplify: bool = param(True, "quadric-simplify M1 like the per-view surface mesh (§4.2.3, "
                               "view_mesh's adaptive target): flat reflected walls need few "
@@ -108,24 +64,7 @@ class ReflectionConfig(StageConfig):
                                 "relative depth error grows by at most this (view_mesh's default)",
                                 min=0.0, max=1.0)
 
-    def check(self, prefix: str) -> None:
-        from ..errors import ConfigError
-        if self.min_neighbours > self.max_neighbours:
-            raise ConfigError(prefix + "min_neighbours", "must be <= max_neighbours")
-
-
-def options(cfg: ReflectionConfig):
-    from ..geometry.decompose import DecomposeOptions
-    return DecomposeOptions(
-        max_neighbours=cfg.max_neighbours, min_overlap=cfg.min_overlap,
-        overlap_tol=cfg.overlap_tol, grid=(cfg.grid_x, cfg.grid_y), w_r=cfg.w_r, w_a=cfg.w_a,
-        gn_iterations=cfg.gn_iterations, use_warp=cfg.use_warp, lambda_s=cfg.lambda_s,
-        lambda_p=cfg.lambda_p, lambda_mv=cfg.lambda_mv, outer_iterations=cfg.outer_iterations,
-        image_iterations=cfg.image_iterations, cg_iterations=cfg.image_iterations, pose_iterations=cfg.pose_iterations,
-        saturation=cfg.saturation, lambda_scene=cfg.lambda_scene if cfg.use_prior else 0.0,
-        optimise_m1_vertices=cfg.optimise_m1_vertices, lambda_lap=cfg.lambda_lap,
-        optimise_m0_vertices=cfg.optimise_m0_vertices,
-        m1_iterations=cfg.m1_iterations)
+    decompose: DecomposeOptions = param(DecomposeOptions(), "the two-layer decomposition (§4.3)")
 
 
 # --- declarations -------------------------------------------------------------------------------
@@ -419,29 +358,26 @@ def get_planes(ctx, loader: Loader) -> dict:
 
 # --- the per-view task --------------------------------------------------------------------------
 def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> dict:
-    from dataclasses import replace
-
     import numpy as np
 
     from ..geometry.decompose import decompose, select_neighbours
     mirror = refl.get("beta") == 1.0
     beta = float(refl.get("beta") or 1.0)
     ref = loader.geom(view, refl)
-    opts = replace(opts, m1_cell=max(2, round(cfg.m1_cell_640 * ref.camera.width / 640)))
     others = [loader.footprint(o, refl) for o in loader.names if o != view]
     nbs_sel = select_neighbours(ref, [o for o in others if o.mask.sum() >= cfg.min_mask_pixels], opts)
     nbs = [loader.geom(n, refl) for n, _ in nbs_sel]
     info = {"name": refl["name"], "beta": beta, "mirror": mirror, "mask_pixels": int(ref.mask.sum()),
             "neighbours": [{"view": n, "overlap": round(f, 3)} for n, f in nbs_sel]}
-    if not mirror and len(nbs) < cfg.min_neighbours:
-        info["discarded"] = f"{len(nbs)} neighbour(s) with > {cfg.min_overlap:.0%} overlap"
+    if not mirror and len(nbs) < opts.min_neighbours:
+        info["discarded"] = f"{len(nbs)} neighbour(s) with > {opts.min_overlap:.0%} overlap"
         return info
     prior = None
-    if cfg.use_prior and not mirror:
+    if opts.lambda_scene > 0 and not mirror:
         prior = loader.prior(view, refl, loader.reflectors)
     res = decompose(ref, nbs, opts, beta=beta, mirror=mirror, R_prior=prior)
     history = [dict(h, **{"pass": 1}) for h in res["history"]]
-    if cfg.multiview and not mirror and nbs:  # §4.3.3: aggregate the neighbours' first pass
+    if opts.multiview and not mirror and nbs:  # §4.3.3: aggregate the neighbours' first pass
         loader.first[(view, refl["name"])] = res["R"]
         prev = {}
         for nb in nbs:
@@ -453,7 +389,7 @@ def _decompose_reflector(loader: Loader, view: str, refl: dict, opts, cfg) -> di
             if key in loader.first:  # first pass already computed by this worker
                 prev[nb.name] = loader.first[key]
             elif nbn:
-                nbp = loader.prior(nb.name, refl, loader.reflectors) if cfg.use_prior else None
+                nbp = loader.prior(nb.name, refl, loader.reflectors) if opts.lambda_scene > 0 else None
                 prev[nb.name] = loader.first[key] = decompose(nb, nbn, opts, beta=beta,
                                                               R_prior=nbp)["R"]
         res = decompose(ref, nbs, opts, beta=beta, aggregate_from=prev, R_init=res["R"],
@@ -511,7 +447,7 @@ def run(ctx: StageContext, view: str) -> None:
     loader = _loader(ctx)
     planes = get_planes(ctx, loader)
     loader.reflectors = planes["reflectors"]
-    opts = options(cfg)
+    opts = cfg.decompose
     img, _depth, wc, _wi, _wd = loader.raw(view)
     H, W = img.shape[:2]
     results, skipped = [], []

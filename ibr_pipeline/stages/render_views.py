@@ -18,6 +18,7 @@ import logging
 from dataclasses import dataclass
 
 from ..config import StageConfig, param
+from ..render.ibr import RenderSettings
 from ..runner import Stage, StageContext
 from .common import REGISTERED_CAMERAS, registered_views
 
@@ -29,35 +30,12 @@ FLY_CAMERAS = "input/gt/flythrough_cameras.json"
 
 @dataclass(frozen=True)
 class RenderViewsConfig(StageConfig):
-    lam: float = param(0.1, "Eq. 14 λ: weight of the camera-distance term", min=0.0, max=100.0)
-    delta: float = param(0.033, "Eq. 15 δ: blending weight w_k = exp(-d_k/δ)", min=1e-4, max=10.0)
-    max_angle: float = param(30.0, "§5.1.2 view selection: max angle between optical axes (deg)",
-                             min=1.0, max=180.0)
-    max_dist: float = param(1.8, "§5.1.2 view selection: max distance between centres (m)",
-                            min=0.01, max=1000.0)
-    cost_margin: float = param(0.17, "§5.1.3 fuzzy depth test: IBR-cost margin", min=0.0, max=10.0)
-    depth_tol: float = param(0.03, "§5.1.3 fuzzy depth test: depth tolerance (m)", min=1e-4, max=10.0)
-    feather_px: float = param(20.0, "§5.1.4 feathering width at image borders (px)", min=0.0, max=500.0)
-    edge_decay_px: float = param(5.0, "§5.1.4 weight decay around depth edges (px)", min=0.0, max=100.0)
-    fill_holes: bool = param(True, "fill holes by push-pull with weight decay at hole borders")
-    hysteresis: bool = param(True, "§5.1.2 keep the previous frame's views (camera paths)")
     baseline: bool = param(True, "also render the single-layer baseline (<set>_single)")
     leave_one_out: bool = param(True, "also render every capture view from the others (renders/loo)")
     fly_frames: int = param(0, "render at most this many fly-through frames (0 = all; a generated "
                             "path has 48)", min=0, max=100000)
-    max_views: int = param(0, "blend at most this many of the selected views, smallest d_k first "
-                           "(0 = every view §5.1.2 selects; a speed/quality knob for ibr bench)",
-                           min=0, max=72)
-
-
-def render_settings(cfg):
-    """The renderer's settings from a stage config (any object with the same fields)."""
-    from ..render.ibr import RenderSettings
-    return RenderSettings(lam=cfg.lam, delta=cfg.delta, max_angle=cfg.max_angle,
-                          max_dist=cfg.max_dist, cost_margin=cfg.cost_margin,
-                          depth_tol=cfg.depth_tol, feather_px=cfg.feather_px,
-                          edge_decay_px=cfg.edge_decay_px, fill_holes=cfg.fill_holes,
-                          hysteresis=cfg.hysteresis, max_views=getattr(cfg, "max_views", 0))
+    renderer: RenderSettings = param(RenderSettings(), "view selection, depth test and blending "
+                                     "(§5.1)")
 
 
 def _cameras(ctx: StageContext, key: str) -> dict:
@@ -143,7 +121,7 @@ def run(ctx: StageContext) -> None:
 
     ws = ctx.ws
     progress = ctx.progress and log.isEnabledFor(logging.INFO)
-    settings = render_settings(ctx.config)
+    settings = ctx.config.renderer
     sets = render_sets(ctx)
     models = {True: IBRModel.load(ws, layers=True, settings=settings, progress=progress)}
     if any(not spec.get("layers", True) for spec in sets.values()):

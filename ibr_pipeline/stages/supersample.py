@@ -13,7 +13,7 @@ An interrupted run resumes: renders are cached in `nn/cache/` and the training s
 """
 from __future__ import annotations
 
-import hashlib
+import dataclasses
 import json
 import logging
 import time
@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
+from ..nn.options import TrainOptions
 from ..runner import Stage, StageContext
 from .common import REGISTERED_CAMERAS, registered_cameras, registered_views
 
@@ -37,36 +38,9 @@ class SupersampleConfig(StageConfig):
     scale: int = param(2, "supersampling factor: renders at 1/scale resolution (§5.2: x2)",
                        choices=(2, 3, 4))
     use_mvr: bool = param(True, "motion-vector rectification (Eq. 16); off = Table 3 'W/O MVR'")
-    steps: int = param(1200, "training steps (cosine learning-rate decay over them)",
-                       min=1, max=1_000_000)
     time_budget_s: float = param(150.0, "wall-clock budget of the whole stage (renders + "
-                                 "training); training stops early and saves; 0 = none",
+                                 "training): training stops early and saves; 0 = none",
                                  min=0.0, max=7 * 86400.0)
-    fit_budget: bool = param(True, "when `steps` would not fit the time budget, end the cosine "
-                             "decay at the step the budget is expected to reach (timed during "
-                             "the run; our addition) instead of stopping at a high learning rate")
-    batch: int = param(4, "crops per step", min=1, max=256)
-    crop: int = param(48, "crop side in low-resolution pixels", min=8, max=1024)
-    lr: float = param(1e-3, "Adam learning rate", min=1e-7, max=1.0)
-    warmup_steps: int = param(100, "linear learning-rate warm-up before the cosine decay (without "
-                              "it the net stayed at bicubic quality on real renders)",
-                              min=0, max=1_000_000)
-    grad_clip: float = param(1.0, "clip the gradient's global L2 norm to this (0 = off; our "
-                             "addition: a `paper`-width run diverged without it)", min=0.0,
-                             max=1e6)
-    perceptual_weight: float = param(0.1, "w of the filter/VGG term (§5.2.2: w = 0.1)",
-                                     min=0.0, max=100.0)
-    l1_weight: float = param(0.0, "optional L1 image term (not in §5.2.2's equation; Table 4 "
-                             "mentions an L1 loss); 0 = the paper's loss", min=0.0, max=100.0)
-    warp_weight: float = param(1.0, "weight of L_warp (§5.2.2; not given in the paper)",
-                               min=0.0, max=100.0)
-    vgg_weights: str = param("", "path of a VGG-16 features state dict for the perceptual loss "
-                             "(none can be downloaded here); empty = fixed filter bank")
-    capture_fraction: float = param(0.0, "share of training crops from capture pairs (the "
-                                    "captured image area-downsampled, with its render's depth) "
-                                    "instead of render pairs; our extension beyond §6, measured "
-                                    "no gain (docs/DSRNET.md); 0 = render pairs only (§6)",
-                                    min=0.0, max=1.0)
     exclude_nearest: int = param(0, "also train on a second render of each training view that "
                                  "leaves out its N nearest capture views too (farther sources: "
                                  "the artefacts of views off the capture path; our extension "
@@ -74,25 +48,15 @@ class SupersampleConfig(StageConfig):
                                  min=0, max=10_000)
     val_fraction: float = param(0.1, "share of capture views held out for validation (§6: 0.1)",
                                 min=0.05, max=0.5)
-    seed: int = param(0, "seed of the weights and the crops (training is deterministic)",
-                      min=0, max=2**31 - 1)
-    device: str = param("auto", "torch device", choices=("auto", "cpu", "cuda"))
-    threads: int = param(0, "torch CPU threads; 0 = auto (all cores, 1 when the machine is "
-                         "already loaded)", min=0, max=512)
-    checkpoint_every: int = param(100, "steps between checkpoints / validation", min=1,
-                                  max=1_000_000)
-    renderer: str = param("ibr", "low-res renderer: 'ibr' (render_views, #7) or 'standin' "
-                          "(synthetic scenes only: GT with IBR-like artefacts, for tests)",
-                          choices=("ibr", "standin"))
-    progress: bool = param(True, "show progress bars")
+    renderer: str = param("ibr", "low-res renderer: 'ibr' (the render_views renderer) or "
+                          "'standin' (synthetic scenes only: ground truth with IBR-like "
+                          "artefacts, for tests)", choices=("ibr", "standin"))
+    train: TrainOptions = param(TrainOptions(), "DSRNet training")
 
     def check(self, prefix: str) -> None:
         if self.exclude_nearest and self.renderer != "ibr":
             raise ConfigError(prefix + "exclude_nearest", "needs renderer = 'ibr' (the stand-in "
                               "renderer has no source views to leave out)")
-        if self.vgg_weights and not self.vgg_weights.endswith((".pt", ".pth")):
-            raise ConfigError(prefix + "vgg_weights", f"expected a .pt/.pth file, got "
-                              f"{self.vgg_weights!r}")
 
 
 def inputs(ctx: StageContext) -> list[str]:
@@ -113,23 +77,6 @@ def inputs(ctx: StageContext) -> list[str]:
     return keys
 
 
-# options that change neither a render nor a training step: a killed run resumed with other values
-# of these (e.g. 1 thread instead of 2 when the machine got busy) keeps its renders and checkpoint
-_RESUME_FREE = ("time_budget_s", "threads", "progress", "checkpoint_every", "device")
-
-
-def _digest(ctx: StageContext) -> str:
-    """Cheap fingerprint of the inputs + config for the resume cache (size, mtime of each input);
-    the options of `_RESUME_FREE` are left out."""
-    same = {k: v for k, v in ctx.config.to_dict().items() if k not in _RESUME_FREE}
-    h = hashlib.sha256(json.dumps(same, sort_keys=True).encode())
-    for k in inputs(ctx):
-        p = ctx.ws.path(k)
-        st = p.stat() if p.is_file() else None
-        h.update(f"{k}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1};".encode())
-    return h.hexdigest()[:24]
-
-
 def run(ctx: StageContext) -> None:
     import shutil
 
@@ -139,26 +86,26 @@ def run(ctx: StageContext) -> None:
     from ..nn.data import (IBRRenderer, StandInRenderer, capture_pairs, make_sample,
                            nearest_views, render_low_res, sequence_pairs, split_views)
     from ..nn.model import count_parameters, preset
-    from ..nn.train import (TrainOptions, cpu_threads, evaluate, plot_losses, save_model,
-                            train)
+    from ..nn.train import cpu_threads, evaluate, plot_losses, save_model, train
     from ..workspace import atomic_path
 
     t_start = time.perf_counter()
     ws, cfg = ctx.ws, ctx.config
     cams = registered_cameras(ws)
     names = registered_views(ctx)
-    if cfg.vgg_weights and not ws.path(cfg.vgg_weights).is_file():
-        raise InputError(f"{ws.path(cfg.vgg_weights)}: supersample.vgg_weights file not found")
+    tcfg = cfg.train
+    if tcfg.vgg_weights and not ws.path(tcfg.vgg_weights).is_file():
+        raise InputError(f"{ws.path(tcfg.vgg_weights)}: supersample.train.vgg_weights file not found")
     train_names, val_names = split_views(names, cfg.val_fraction)
     if cfg.exclude_nearest and cfg.exclude_nearest >= len(names) - 1:
         raise InputError(f"supersample.exclude_nearest = {cfg.exclude_nearest} would leave out "
                          f"every other view ({len(names)} registered views)")
     if cfg.renderer == "standin":
-        renderer = StandInRenderer(ws.input_root, seed=cfg.seed)
+        renderer = StandInRenderer(ws.input_root, seed=tcfg.seed)
     else:
         renderer = IBRRenderer(ws)
 
-    digest = _digest(ctx)
+    digest = ctx.fingerprint   # renders and checkpoint belong to this run's inputs and config
     cache_dir = ws.path(CACHE)
     meta = cache_dir / "meta.json"
     if meta.is_file() and json.loads(meta.read_text()).get("digest") != digest:
@@ -181,7 +128,7 @@ def run(ctx: StageContext) -> None:
         return cache
 
     t0 = time.perf_counter()
-    show = cfg.progress and ctx.progress   # `ibr ... --no-progress` silences the stage's bars too
+    show = tcfg.progress and ctx.progress   # `ibr ... --no-progress` silences the stage's bars too
     frames = render_low_res(names, cams, renderer, cfg.scale, show, cache_as())
     far_frames = {}
     if cfg.exclude_nearest:  # training views only: no validation view is ever a target
@@ -203,7 +150,7 @@ def run(ctx: StageContext) -> None:
                    if far_frames else [])
     train_samples += far_samples
     # capture pairs of the training views only (never a validation view, not even as previous)
-    capture_samples = capture_pairs(train_pairs, frames, targets) if cfg.capture_fraction > 0 else []
+    capture_samples = capture_pairs(train_pairs, frames, targets) if tcfg.capture_fraction > 0 else []
     val_samples = [make_sample(c, p, frames, targets[c]) for c, p in sequence_pairs(names, val_names)
                    if p not in val_names]
 
@@ -212,33 +159,28 @@ def run(ctx: StageContext) -> None:
     budget = 0.0
     if cfg.time_budget_s > 0:
         budget = max(1e-3, cfg.time_budget_s - (time.perf_counter() - t_start) - reserve)
-    opts = TrainOptions(steps=cfg.steps, time_budget_s=budget, batch=cfg.batch, crop=cfg.crop,
-                        lr=cfg.lr, warmup_steps=cfg.warmup_steps, perceptual_weight=cfg.perceptual_weight,
-                        warp_weight=cfg.warp_weight, l1_weight=cfg.l1_weight,
-                        vgg_weights=str(ws.path(cfg.vgg_weights)) if cfg.vgg_weights else "",
-                        seed=cfg.seed, checkpoint_every=cfg.checkpoint_every, device=cfg.device, threads=cfg.threads,
-                        progress=show, capture_fraction=cfg.capture_fraction,
-                        fit_budget=cfg.fit_budget, grad_clip=cfg.grad_clip)
+    opts = dataclasses.replace(tcfg, progress=show, vgg_weights=(str(ws.path(tcfg.vgg_weights))
+                                                                 if tcfg.vgg_weights else ""))
     result = train(model_cfg, train_samples, val_samples, opts, ws.path(CHECKPOINT), digest,
-                   capture_samples=capture_samples)
+                   capture_samples=capture_samples, time_budget_s=budget)
     device = next(result.model.parameters()).device
     val = evaluate(result.model, val_samples, device)
     save_model(ws.path(MODEL), result.model, {"trained_steps": result.steps})
-    horizon = int(result.history.get("horizon", cfg.steps))
-    fitted = horizon < cfg.steps
+    horizon = int(result.history.get("horizon", tcfg.steps))
+    fitted = horizon < tcfg.steps
     plot_losses(result.history, ws.path(LOSS_PNG),
                 f"DSRNet ({cfg.preset}, {'MVR' if cfg.use_mvr else 'no MVR'}), {result.steps} steps"
-                + (f" (of {cfg.steps}: fitted to the time budget)" if fitted else ""),
-                "1 − SSIM + w·filters" + (" + L1" if cfg.l1_weight > 0 else "")
-                + (" + L_warp" if cfg.warp_weight > 0 else ""))
+                + (f" (of {tcfg.steps}: fitted to the time budget)" if fitted else ""),
+                "1 − SSIM + w·filters" + (" + L1" if tcfg.l1_weight > 0 else "")
+                + (" + L_warp" if tcfg.warp_weight > 0 else ""))
     report = {
         "preset": cfg.preset, "model": model_cfg.to_dict(),
         "parameters": count_parameters(result.model), "renderer": cfg.renderer,
         "train_views": train_names, "val_views": val_names,
         "train_pairs": len(train_samples), "far_pairs": len(far_samples),
         "exclude_nearest": cfg.exclude_nearest, "capture_pairs": len(capture_samples),
-        "capture_fraction": cfg.capture_fraction, "val_pairs": len(val_samples),
-        "steps": result.steps, "steps_planned": cfg.steps, "resumed_from_step": result.resumed_from,
+        "capture_fraction": tcfg.capture_fraction, "val_pairs": len(val_samples),
+        "steps": result.steps, "steps_planned": tcfg.steps, "resumed_from_step": result.resumed_from,
         "lr_horizon": horizon,
         "clipped_steps": int(result.history.get("clipped", 0)),
         "val_curve": [[int(a), float(b)] for a, b in zip(result.history.get("val_step", []),
@@ -247,7 +189,7 @@ def run(ctx: StageContext) -> None:
         "seconds": {"render": render_s, "train": result.seconds,
                     "total": time.perf_counter() - t_start},
         "device": str(device), "validation": val,
-        "torch_threads": cpu_threads(cfg.threads) if device.type == "cpu" else None,
+        "torch_threads": cpu_threads(tcfg.threads) if device.type == "cpu" else None,
         "final_loss": float(np.mean(result.history["loss"][-20:])) if result.history["loss"] else None,
     }
     if not val_names:

@@ -73,8 +73,8 @@ def test_depth_count_mismatch_is_a_clean_error(tiny_scene, tmp_path, capsys):
 @pytest.mark.parametrize("value", ["-1", "1e-6"])
 def test_absurd_config_is_rejected(tiny_scene, tmp_path, capsys, value):
     ws = tmp_path / "ws"
-    code = main(["run", str(ws), "--input", str(tiny_scene[0]), "--set", f"global_mesh.voxel_size={value}"])
-    assert code == 2 and "global_mesh.voxel_size" in capsys.readouterr().err
+    code = main(["run", str(ws), "--input", str(tiny_scene[0]), "--set", f"global_mesh.fusion.voxel_size={value}"])
+    assert code == 2 and "global_mesh.fusion.voxel_size" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -88,7 +88,7 @@ def test_fusion_skips_frames_left_empty_by_masking(tiny_scene):
     aborts on it); only when no frame has depth is it an error."""
     import pytest
 
-    from ibr_pipeline.geometry.fusion import tsdf_fuse
+    from ibr_pipeline.geometry.fusion import FusionOptions, tsdf_fuse
     from ibr_pipeline.io.images import read_depth_png
     from ibr_pipeline.scene import cameras_from_json
 
@@ -96,10 +96,11 @@ def test_fusion_skips_frames_left_empty_by_masking(tiny_scene):
     cams = cameras_from_json(root / "cameras.json")
     name = sorted(cams)[0]
     d = read_depth_png(root / "depth" / f"{name[:-4]}.png")
-    mesh, stats = tsdf_fuse([(np.zeros_like(d), cams[name], None), (d, cams[name], None)])
+    mesh, stats = tsdf_fuse([(np.zeros_like(d), cams[name], None), (d, cams[name], None)],
+                             FusionOptions(voxel_size=0.02))
     assert stats["frames"] == 1 and stats["skipped_empty_frames"] == 1 and len(mesh.faces) > 100
     with pytest.raises(ValueError, match="no frame has valid depth"):
-        tsdf_fuse([(np.zeros_like(d), cams[name], None)])
+        tsdf_fuse([(np.zeros_like(d), cams[name], None)], FusionOptions(voxel_size=0.02))
 
 
 def test_box_sum_equals_direct_window_sums():

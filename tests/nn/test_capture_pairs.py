@@ -89,7 +89,7 @@ def test_tiny_mixed_run_lowers_the_loss(data):
 
     render, capture = data["render"][:1], data["capture"][:1]
     opts = TrainOptions(steps=150, batch=2, crop=1000, lr=3e-3, warmup_steps=20,
-                        checkpoint_every=1000, progress=False, threads=1, time_budget_s=0,
+                        checkpoint_every=1000, progress=False, threads=1,
                         capture_fraction=0.5, flip=False)
     batch = to_tensors(render + capture)
     feats = build_features("")

@@ -61,8 +61,8 @@ def test_far_render_leaves_out_the_nearest_views(gt_ws):
 
 
 def test_stage_trains_on_far_renders_of_training_views(gt_ws):
-    fast = ["--steps", "2", "--batch", "2", "--crop", "16", "--checkpoint-every", "2",
-            "--threads", "1", "--no-progress", "--time-budget-s", "0"]
+    fast = ["--train.steps", "2", "--train.batch", "2", "--train.crop", "16", "--train.checkpoint-every", "2",
+            "--train.threads", "1", "--no-progress", "--time-budget-s", "0"]
     assert main(["-q", "supersample", str(gt_ws), "--exclude-nearest", "2"] + fast) == 0
     rep = json.loads((gt_ws / "nn" / "train.json").read_text())
     assert rep["exclude_nearest"] == 2 and rep["far_pairs"] > 0

@@ -14,8 +14,8 @@ from ibr_pipeline.nn.infer import SuperSampler
 from ibr_pipeline.scene import cameras_from_json
 from ibr_pipeline.workspace import Workspace
 
-FAST = ["--renderer", "standin", "--steps", "4", "--batch", "2", "--crop", "24",
-        "--checkpoint-every", "2", "--threads", "1", "--no-progress"]
+FAST = ["--renderer", "standin", "--train.steps", "4", "--train.batch", "2", "--train.crop", "24",
+        "--train.checkpoint-every", "2", "--train.threads", "1", "--no-progress"]
 
 
 @pytest.fixture
@@ -62,10 +62,10 @@ def test_stage_runs_and_sampler_uses_it(ws, tiny_scene):
 
 
 def test_bad_config_and_missing_inputs_write_nothing(ws, capsys):
-    assert main(["supersample", str(ws), "--steps", "0", "--no-progress"]) == 2
-    assert "supersample.steps" in capsys.readouterr().err
+    assert main(["supersample", str(ws), "--train.steps", "0", "--no-progress"]) == 2
+    assert "supersample.train.steps" in capsys.readouterr().err
     assert main(["supersample", str(ws), "--preset", "huge", "--no-progress"]) == 2
-    assert main(["supersample", str(ws), "--vgg-weights", "nope.pt"] + FAST) == 2
+    assert main(["supersample", str(ws), "--train.vgg-weights", "nope.pt"] + FAST) == 2
     assert "vgg_weights" in capsys.readouterr().err
     assert not (ws / "nn" / "dsrnet.pt").exists()
 
@@ -73,7 +73,7 @@ def test_bad_config_and_missing_inputs_write_nothing(ws, capsys):
 def test_real_renderer_needs_view_meshes(ws):
     """With the default renderer (issue #7's IBR model) the stage needs the per-view meshes and
     edges: without them it is blocked (missing input) and writes nothing."""
-    rc = main(["supersample", str(ws), "--steps", "2", "--no-progress"])
+    rc = main(["supersample", str(ws), "--train.steps", "2", "--no-progress"])
     assert rc != 0
     assert not (ws / "nn" / "dsrnet.pt").exists()
 
@@ -94,7 +94,7 @@ def test_help_lists_the_config():
 
 
 def test_stage_mixes_capture_pairs_of_training_views_only(ws):
-    assert main(["supersample", str(ws), "--capture-fraction", "0.5", "--warmup-steps", "2"]
+    assert main(["supersample", str(ws), "--train.capture-fraction", "0.5", "--train.warmup-steps", "2"]
                 + FAST) == 0
     rep = json.loads((ws / "nn" / "train.json").read_text())
     assert rep["capture_fraction"] == 0.5 and rep["capture_pairs"] == rep["train_pairs"] > 0
@@ -102,15 +102,19 @@ def test_stage_mixes_capture_pairs_of_training_views_only(ws):
     assert rep["validation"]["psnr"] > 15
 
 
-def test_resume_cache_ignores_run_only_options(tmp_path):
-    """A killed run restarted with another thread count or time budget keeps its renders and
-    checkpoint (the resume digest leaves those options out); a training option changes it."""
-    from types import SimpleNamespace
+def test_fingerprint_leaves_out_run_only_options():
+    """Options marked affects_output=False (threads, device, progress) neither rerun the stage nor
+    invalidate its resumable renders and checkpoint (both are kept under the runner's
+    fingerprint); a training option, a model option or an input does."""
+    from ibr_pipeline.nn.train import TrainOptions
+    from ibr_pipeline.runner import fingerprint
+    from ibr_pipeline.stages.supersample import STAGE, SupersampleConfig
 
-    from ibr_pipeline.stages.supersample import SupersampleConfig, _digest
+    def fp(inputs=None, **kw):
+        return fingerprint(STAGE, SupersampleConfig(**kw), inputs or {"a.png": "1"})
+    base = fp()
+    assert fp(train=TrainOptions(threads=2, progress=False, device="cpu")) == base
+    assert fp(train=TrainOptions(steps=7000)) != base and fp(use_mvr=False) != base
+    assert fp(time_budget_s=1200.0) != base   # the budget decides how far training gets
+    assert fp({"a.png": "2"}) != base
 
-    fake_ws = SimpleNamespace(exists=lambda key: False, path=lambda key: tmp_path / key)
-    digest = lambda **kw: _digest(SimpleNamespace(config=SupersampleConfig(**kw), ws=fake_ws))  # noqa: E731
-    base = digest()
-    assert digest(threads=2, time_budget_s=1200.0, progress=False, checkpoint_every=50) == base
-    assert digest(steps=7000) != base and digest(use_mvr=False) != base

@@ -15,8 +15,7 @@ from ibr_pipeline.nn.train import TrainOptions, evaluate, load_model, plot_losse
 
 SMALL = DSRNetConfig(feature_channels=(8, 8, 4), mvr_channels=(8, 8), reweight_channels=(8, 8),
                      unet_channels=(8, 12))
-OPTS = TrainOptions(steps=6, batch=2, crop=24, checkpoint_every=3, progress=False, threads=1,
-                    time_budget_s=0)
+OPTS = TrainOptions(steps=6, batch=2, crop=24, checkpoint_every=3, progress=False, threads=1)
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +39,7 @@ def test_deterministic_and_resume_exact(tiny_samples, tmp_path):
     assert resumed.resumed_from == 3 and resumed.steps == 6
     assert torch.allclose(_weights(resumed.model), _weights(a.model), atol=1e-6)
     # a time budget stops early and says so
-    cut = train(SMALL, tr, va, dataclasses.replace(OPTS, time_budget_s=1e-9))
+    cut = train(SMALL, tr, va, OPTS, time_budget_s=1e-9)
     assert cut.stopped_by_budget and cut.steps < 6
     # another data fingerprint: the checkpoint is ignored
     assert train(SMALL, tr, va, OPTS, ck, "other").resumed_from == 0
@@ -86,7 +85,7 @@ def test_overfits_one_frame_beyond_bicubic(tiny_samples):
     0.3 dB of bicubic here: the stand-in's random sub-pixel misalignment cannot be learned."""
     _, va, _ = tiny_samples
     opts = TrainOptions(steps=200, batch=2, crop=24, lr=1e-3, checkpoint_every=1000,
-                        progress=False, threads=1, time_budget_s=0)
+                        progress=False, threads=1)
     res = train(DSRNetConfig(use_mvr=False), va[:1], [], opts)
     ev = evaluate(res.model, va[:1], "cpu")
     assert ev["ssim"] > ev["ssim_bicubic"] + 0.02, ev
@@ -100,7 +99,7 @@ def test_beats_bicubic_on_held_out_views(sample_scene):
     never trained on), 400 steps (~2-3 min): beats bicubic and bilinear in PSNR and SSIM."""
     tr, va, _ = standin_samples(sample_scene)
     opts = TrainOptions(steps=400, batch=4, crop=48, lr=1e-3, checkpoint_every=1000,
-                        progress=False, threads=1, time_budget_s=0)
+                        progress=False, threads=1)
     res = train(DSRNetConfig(), tr, va, opts)
     ev = evaluate(res.model, va, "cpu")
     assert ev["psnr"] > ev["psnr_bicubic"] + 0.2, ev
@@ -141,13 +140,13 @@ def test_budget_fit_ends_the_decay_inside_the_budget(tiny_samples, monkeypatch):
     high learning rate."""
     import ibr_pipeline.nn.train as T
     tr, va, _ = tiny_samples
-    opts = dataclasses.replace(OPTS, steps=60, time_budget_s=30.0, checkpoint_every=10,
+    opts = dataclasses.replace(OPTS, steps=60, checkpoint_every=10,
                                warmup_steps=0)
 
     def run(fit):
         ticks = iter(range(10_000))
         monkeypatch.setattr(T, "_clock", lambda: float(next(ticks)))
-        return train(SMALL, tr[:2], [], dataclasses.replace(opts, fit_budget=fit))
+        return train(SMALL, tr[:2], [], dataclasses.replace(opts, fit_budget=fit), time_budget_s=30.0)
 
     fitted, cut = run(True), run(False)
     h = fitted.history["horizon"]

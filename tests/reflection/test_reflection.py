@@ -127,10 +127,15 @@ def test_bad_input_and_config(tiny_ws, tmp_path):
     from ibr_pipeline.errors import ConfigError, InputError
     from ibr_pipeline.runner import StageContext
     from ibr_pipeline.stages.reflection import Loader, ReflectionConfig
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match="reflection.work_scale"):
         build_config(ReflectionConfig, "reflection", {"work_scale": 5.0})
-    with pytest.raises(ConfigError):
-        build_config(ReflectionConfig, "reflection", {"min_neighbours": 9, "max_neighbours": 2})
+    with pytest.raises(ConfigError, match="reflection.decompose.min_neighbours"):
+        build_config(ReflectionConfig, "reflection",
+                     {"decompose": {"min_neighbours": 9, "max_neighbours": 2}})
+    with pytest.raises(ConfigError, match="reflection.decompose.grid"):
+        build_config(ReflectionConfig, "reflection", {"decompose": {"grid": [40]}})
+    with pytest.raises(ConfigError, match="unknown field"):
+        build_config(ReflectionConfig, "reflection", {"min_neighbours": 9})   # a nested one
     scene, ws = tiny_ws
     import shutil
     from ibr_pipeline.workspace import Workspace

@@ -154,8 +154,8 @@ def _run(ref, nbs, D1_true, iterations=5):
     this synthetic scene is too weak (Eq. 6 init) to expose M1's error."""
     X1t = ref.camera.center + (ref.X1 - ref.camera.center) * (D1_true / ref.D1)[..., None]
     R_true = np.where(ref.mask[..., None], BETA * _tex1(X1t), 0.0)
-    opts = DecomposeOptions(use_warp=False, optimise_m1_vertices=True, m1_cell=16,
-                            m1_iterations=iterations, lambda_p=0.0, lambda_scene=2.0)
+    opts = DecomposeOptions(use_warp=False, optimise_m1_vertices=True, m1_cell_640=64,
+                            m1_iterations=iterations)
     return _decompose(ref, nbs, opts, beta=BETA, R_prior=R_true)
 
 
@@ -248,7 +248,7 @@ def _run_m0(ref, nbs, iterations=5, m1=False):
     reflection layer as colour prior (as `_run`: the test isolates the geometry)."""
     R_true = np.where(ref.mask[..., None], BETA * _tex1(ref.X1), 0.0)
     opts = DecomposeOptions(use_warp=False, optimise_m0_vertices=True, optimise_m1_vertices=m1,
-                            m1_cell=16, m1_iterations=iterations, lambda_p=0.0, lambda_scene=2.0)
+                            m1_cell_640=64, m1_iterations=iterations)
     return _decompose(ref, nbs, opts, beta=BETA, R_prior=R_true)
 
 

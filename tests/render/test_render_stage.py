@@ -76,8 +76,8 @@ def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "mesh.ply" in err
     assert not (ws / "renders").exists() or not list((ws / "renders").rglob("*.png"))
-    assert main(["render_views", str(ws), "--delta", "-1"]) == 2
-    assert "delta" in capsys.readouterr().err
+    assert main(["render_views", str(ws), "--renderer.delta", "-1"]) == 2
+    assert "render_views.renderer.delta" in capsys.readouterr().err
 
 
 def test_single_layer_workspace_renders(tiny_scene, tmp_path):
