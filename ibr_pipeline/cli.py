@@ -1,6 +1,6 @@
 """`ibr`: the command-line interface. One subcommand per stage, plus init/run/status/stages/synth.
 
-Exit codes: 0 done (stages that are not built yet are reported, not errors); 1 a stage failed (its
+Exit codes: 0 done; 1 a stage failed (its
 error is printed, tracebacks are kept under WS/.ibr/logs/); 2 bad input (one line naming the file or
 field; nothing written). Heavy libraries are imported only by the code that runs a stage, so
 `ibr --help` returns at once.
@@ -87,9 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("stages", help="list the stages and every config field with its default")
 
     for s in _stages():
-        p = sub.add_parser(s.name, help=f"stage: {s.help}" + ("" if s.built else " [not built yet]"),
-                           description=f"Stage {s.name}: {s.help}."
-                           + ("" if s.built else f" Not built yet ({s.todo})."))
+        p = sub.add_parser(s.name, help=f"stage: {s.help}", description=f"Stage {s.name}: {s.help}.")
         p.add_argument("workspace", type=Path, help="workspace folder")
         for name, typ, default, hlp in describe_fields(s.config):
             p.add_argument(f"--{name.replace('_', '-')}", dest=f"cfg__{name}", metavar=typ.upper(),
@@ -170,7 +168,7 @@ def _open_workspace(args):
 
 def _cmd_stages(args) -> int:
     for s in _stages():
-        print(f"{s.name}: {s.help}" + ("" if s.built else f"  [not built yet: {s.todo}]"))
+        print(f"{s.name}: {s.help}")
         for name, typ, default, hlp in describe_fields(s.config):
             print(f"    {name} ({typ}, default {default!r}): {hlp}")
     return 0
@@ -207,9 +205,6 @@ def _cmd_run(args, only: str | None = None, overrides: dict | None = None) -> in
         results = run(stages, ws, configs, selected, args.force, executor,
                       progress=not args.no_progress)
     log.info("\n%s", timing_table(results))
-    missing = [r.name for r in results if r.result == "not built"]
-    if missing:
-        log.warning("not built yet (no outputs written for them): %s", ", ".join(missing))
     return 1 if any(r.result in ("failed", "blocked") for r in results) else 0
 
 

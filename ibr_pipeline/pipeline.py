@@ -18,7 +18,8 @@ from .executors import Executor, LocalExecutor
 from .runner import (HashCache, Stage, StageContext, StagePlan, error_line, expand, fingerprint,
                      format_traceback, make_record, output_record, plan_stage, run_view_task,
                      write_record)
-from .workspace import Workspace, atomic_path, view_key
+from .layout import view_key
+from .workspace import Workspace, atomic_path
 
 log = logging.getLogger("ibr_pipeline")
 
@@ -165,8 +166,7 @@ def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
         progress: bool = True) -> list[StageResult]:
     """Run the selected stages in order; returns one StageResult per selected stage.
 
-    Stops after a stage that failed or is blocked; a stage that is not built yet is reported and
-    skipped (so are the stages that need its outputs: they are blocked).
+    Stops after a stage that failed or is blocked.
     """
     executor = executor or LocalExecutor(1)
     removed = ws.clean_temporaries()
@@ -178,10 +178,6 @@ def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
         for s in selected:
             ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws), progress=progress)
             plan = plan_stage(s, ctx, hashes, force, None)
-            if plan.state == "not built":
-                log.warning("stage %-13s NOT BUILT YET — %s", s.name, s.todo or "planned")
-                results.append(StageResult(s.name, "not built"))
-                continue
             if plan.state == "blocked":
                 log.warning("stage %-13s blocked: %s", s.name, plan.summary())
                 results.append(StageResult(s.name, "blocked"))

@@ -54,14 +54,14 @@ class Stage:
     """One row of the stage table.
 
     run:  whole-scene stages: run(ctx) writes `outputs`. Per-view stages: run(ctx, view) writes the
-          view's `view_outputs`. None means the stage is not built yet (`todo` says where it is planned).
+          view's `view_outputs`.
     """
 
     name: str
     help: str
     config: type[StageConfig]
     version: str
-    run: Callable | None
+    run: Callable
     per_view: bool = False
     inputs: IOSpec = ()
     outputs: IOSpec = ()
@@ -69,11 +69,6 @@ class Stage:
     view_outputs: IOSpec = ()
     views: Callable | None = None  # ctx -> view names to process (default: every view in the scene)
     needs_scene: bool = True
-    todo: str = ""
-
-    @property
-    def built(self) -> bool:
-        return self.run is not None
 
 
 def expand(spec: IOSpec, ctx: StageContext, view: str | None = None) -> list[str]:
@@ -211,7 +206,7 @@ def run_view_task(stage: Stage, ctx: StageContext, view: str) -> dict:
 @dataclass
 class StagePlan:
     stage: Stage
-    state: str  # "up to date" | "will run" | "not built" | "blocked"
+    state: str  # "up to date" | "will run" | "blocked" | "not selected"
     reasons: list[str] = field(default_factory=list)
     views_todo: list[str] = field(default_factory=list)
     views_total: int = 0
@@ -219,8 +214,6 @@ class StagePlan:
     input_hashes: dict = field(default_factory=dict)  # key -> sha (whole) or view -> {key: sha}
 
     def summary(self) -> str:
-        if self.state == "not built":
-            return f"not built yet{f' ({self.stage.todo})' if self.stage.todo else ''}"
         if not self.stage.per_view or self.state != "will run" or not self.view_reasons:
             return "; ".join(self.reasons)
         counts = Counter(r for v in self.views_todo for r in self.view_reasons.get(v, []))
@@ -234,8 +227,6 @@ def plan_stage(stage: Stage, ctx: StageContext, hashes: HashCache, force: bool,
                upstream_running: str | None) -> StagePlan:
     """Decide whether `stage` would run now, and why."""
     ws = ctx.ws
-    if not stage.built:
-        return StagePlan(stage, "not built")
     if upstream_running is not None:
         return StagePlan(stage, "will run", [f"upstream stage {upstream_running!r} will run"])
     if stage.needs_scene and ctx.scene is None:

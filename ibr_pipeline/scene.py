@@ -296,6 +296,17 @@ class Scene:
 
 
 # --- cameras.json: our plain JSON camera format (also written by `ibr synth`) -------------------
+def moved_camera(old: Camera, move_cm: float = 5.0, yaw_deg: float = 3.0, up_cm: float = 0.0) -> Camera:
+    """`old` translated move_cm along its x axis (right), up_cm up, and yawed yaw_deg."""
+    a = np.radians(yaw_deg)
+    Ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    T = old.cam_from_world.copy()
+    T[:3, :3] = Ry @ old.R
+    c = old.center + 0.01 * move_cm * old.R[0] - 0.01 * up_cm * old.R[1]
+    T[:3, 3] = -T[:3, :3] @ c
+    return Camera(old.K, T, old.width, old.height)
+
+
 def cameras_to_json(cameras: dict[str, Camera]) -> str:
     """Serialise {image name: Camera} in the `cameras.json` format."""
     return json.dumps({"format": "ibr_pipeline.cameras/1", "convention": "opencv",
@@ -322,69 +333,3 @@ def read_reflectors(path: Path) -> tuple[Reflector, ...]:
     if not isinstance(items, list):
         raise InputError(f"{path}: expected a list of reflectors (or {{'reflectors': [...]}})")
     return tuple(Reflector.from_dict(r, f"{path}: reflector {i}") for i, r in enumerate(items))
-
-
-def read_input(root: Path) -> Scene:
-    """Read an input folder into a Scene whose paths are `input/...` workspace keys.
-
-    Accepted layouts (DESIGN.md): a COLMAP workspace (`images/` + `sparse/0`, binary or text
-    model, read with pycolmap); `images/` + `cameras.json`; or a bare folder of images (in
-    `images/` or at the top level; no poses: SfM must run). Optional: `depth/<image stem>.png`
-    (16-bit mm) and `reflectors.json`. Only names and cameras are read here; pixel contents are
-    checked by the `ingest` stage.
-    """
-    root = Path(root)
-    if not root.is_dir():
-        raise InputError(f"{root}: input folder does not exist")
-    img_dir = root / "images" if (root / "images").is_dir() else root
-    rel = "images/" if img_dir != root else ""
-    files = sorted(p for p in img_dir.rglob("*") if p.suffix.lower() in IMAGE_EXTENSIONS
-                   and p.is_file() and not any(part.startswith(".") for part in p.parts))
-    if rel == "":  # top-level images only: depth/ and masks must not be taken for views
-        files = [p for p in files if p.parent == root]
-    if not files:
-        raise InputError(f"{root}: no images found (looked for *.png/*.jpg in {img_dir})")
-    names = [p.relative_to(img_dir).as_posix() for p in files]
-
-    cameras: dict[str, Camera] = {}
-    source = "images"
-    sparse = root / "sparse" / "0"
-    if sparse.is_dir():
-        from .io.colmap import read_colmap_model
-        cameras, source = read_colmap_model(sparse), "colmap"
-        unknown = sorted(set(cameras) - set(names))
-        if unknown:
-            raise InputError(f"{sparse}: model refers to images not in {img_dir}: {unknown[:5]}")
-    elif (root / "cameras.json").is_file():
-        cameras, source = cameras_from_json(root / "cameras.json"), "cameras.json"
-
-    depth_dir = root / "depth"
-    views = []
-    for name in names:
-        stem = Path(name).with_suffix("").as_posix()
-        depth = depth_dir / f"{stem}.png"
-        views.append(View(name=name, image=f"input/{rel}{name}", camera=cameras.get(name),
-                          depth=f"input/depth/{stem}.png" if depth.is_file() else None))
-    reflectors = read_reflectors(root / "reflectors.json") if (root / "reflectors.json").is_file() else ()
-    return Scene(tuple(views), reflectors, source)
-
-
-def input_files(root: Path) -> list[Path]:
-    """The files of an input folder that the pipeline reads (what `ingest` fingerprints).
-
-    Images, depth frames, the COLMAP model, cameras.json, reflectors.json and reflector masks;
-    not `gt/` or anything else that happens to sit beside them.
-    """
-    root = Path(root)
-    img_dir = root / "images" if (root / "images").is_dir() else root
-    found: list[Path] = []
-    for folder, recursive in ((img_dir, img_dir != root), (root / "depth", True), (root / "masks", True)):
-        if folder.is_dir():
-            it = folder.rglob("*") if recursive else folder.glob("*")
-            found += [p for p in it if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
-                      and not any(part.startswith(".") for part in p.relative_to(root).parts)]
-    sparse = root / "sparse" / "0"
-    if sparse.is_dir():
-        found += [p for p in sparse.iterdir() if p.is_file()]
-    found += [p for p in (root / "cameras.json", root / "reflectors.json") if p.is_file()]
-    return sorted(set(found))

@@ -1,4 +1,4 @@
-"""The workspace: the ONLY module that knows paths.
+"""The workspace: where a key lives on disk (layout.py names the keys), and atomic writes.
 
 A workspace is a folder holding the pipeline's outputs for one scene:
 
@@ -6,7 +6,7 @@ A workspace is a folder holding the pipeline's outputs for one scene:
       ibr.toml                 config: [input] path = "..." and one table per stage
       scene.json               the scene manifest (stage `ingest`)
       sfm/  global/            global_mesh outputs
-      views/<view>/...         per-view outputs (view names are made path-safe, see `view_key`)
+      views/<view>/...         per-view outputs (view names made path-safe: layout.view_key)
       renders/ eval/           novel views, metrics, charts
       .ibr/state/<stage>.json  whole-stage records; .ibr/state/<stage>/<view>.json per-view ones
       .ibr/hashes.json         content-hash cache keyed by (size, mtime)
@@ -20,30 +20,22 @@ target, so a killed process never leaves a half-written file under a real name.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import os
-import re
 import tempfile
 import tomllib
 from pathlib import Path
 from typing import Iterator
 
+from . import layout
 from .errors import InputError
+from .layout import view_key
 
 CONFIG_FILE = "ibr.toml"
-INPUT_PREFIX = "input/"
+INPUT_PREFIX = layout.INPUT
 _TMP_MARK = ".ibrtmp-"
 _UMASK = os.umask(0)  # read the process umask once (os.umask can only be read by setting it)
 os.umask(_UMASK)
-
-
-def view_key(name: str) -> str:
-    """A path-safe, unique folder name for a view name such as 'sub/dir/0001.png'."""
-    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name)
-    if safe == name:
-        return safe
-    return f"{safe}-{hashlib.sha1(name.encode()).hexdigest()[:6]}"
 
 
 def read_toml(path: Path) -> dict:
@@ -104,15 +96,13 @@ class Workspace:
     def exists(self, key: str) -> bool:
         return self.path(key).is_file()
 
-    # --- well-known keys ---------------------------------------------------------------------
-    SCENE = "scene.json"
+    # --- well-known keys (layout.py) ---------------------------------------------------------
+    SCENE = layout.SCENE
+    view_dir = staticmethod(layout.view_dir)
 
     @staticmethod
-    def view_dir(view: str) -> str:
-        return f"views/{view_key(view)}"
-
-    def view_file(self, view: str, filename: str) -> str:
-        return f"{self.view_dir(view)}/{filename}"
+    def view_file(view: str, filename: str) -> str:
+        return layout.view_file(view, filename)
 
     def state_file(self, stage: str, view: str | None = None) -> Path:
         base = self.root / ".ibr" / "state"

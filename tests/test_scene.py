@@ -7,7 +7,8 @@ import pytest
 from ibr_pipeline.errors import InputError
 from ibr_pipeline.io.colmap import read_colmap_model, write_colmap_model
 from ibr_pipeline.io.images import read_depth_png, write_depth_png, write_image
-from ibr_pipeline.scene import Camera, Reflector, Scene, cameras_to_json, read_input
+from ibr_pipeline.io.inputs import read_input
+from ibr_pipeline.scene import Camera, Reflector, Scene, cameras_to_json
 
 
 def _cams(n=4, w=64, h=48):

@@ -81,7 +81,6 @@ STAGES = (
           per_view=True, needs_scene=False, inputs=("toy/views.json",),
           view_inputs=("input/data/{view}.txt",), view_outputs=("{view_dir}/out.txt",),
           views=upper_views),
-    Stage(name="later", help="not built", config=ListingConfig, version="0", run=None, todo="someday"),
 )
 
 

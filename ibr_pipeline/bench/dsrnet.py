@@ -207,7 +207,8 @@ def main(argv=None) -> int:
                            render_low_res, sequence_pairs, split_views)
     from ..nn.infer import SuperSampler
     from ..nn.model import count_parameters, preset
-    from ..nn.train import TrainOptions, cpu_threads, resolve_device, torch_threads, train
+    from ..nn.model import cpu_threads, resolve_device, torch_threads
+    from ..nn.train import TrainOptions, train
 
     ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.dsrnet", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -292,7 +293,7 @@ def main(argv=None) -> int:
     models, trainings = {}, {}
     variants = [("dsrnet", True)] + ([] if args.no_ablation else [("dsrnet_no_mvr", False)])
     if args.model:
-        from ..nn.train import load_model
+        from ..nn.model import load_model
         models["dsrnet"] = load_model(Path(args.model), device)
         report["model"] = str(args.model)
         if args.model_no_mvr:

@@ -53,7 +53,7 @@ def _fscore(scene: Path, ws: Path) -> dict:
     from ..geometry.fusion import mirror_world_points
     from ..geometry.mesh_metrics import distance_to_mesh, fscore, observed_points
     from ..io.mesh import read_ply
-    from ..scene import read_input
+    from ..io.inputs import read_input
     sc = read_input(scene)
     cams = [v.camera for v in sc.views]
     depths = [np.load(scene / "gt" / "geom" / (Path(v.name).stem + ".npz"))["depth"] for v in sc.views]
@@ -77,7 +77,7 @@ def bench_mvs_speed(scene: Path, repeats: int, device: str, threads: int = 1) ->
 
     from ..geometry.mvs import plane_sweep, select_sources
     from ..io.images import read_image
-    from ..scene import read_input
+    from ..io.inputs import read_input
     from ..stages.global_mesh import GlobalMeshConfig
     cfg = GlobalMeshConfig()
     sc = read_input(scene)

@@ -5,7 +5,7 @@
          [--device cpu|cuda] [--threads 2] [--backend auto|torch|numba] [--out out/bench_raytree]
          [--skip-speed]
 
-Accuracy: for every case (raytree.scenarios.CASES) a ray tree is traced at an old camera and the
+Accuracy: for every case (synthetic.raytree_cases.CASES) a ray tree is traced at an old camera and the
 exact render at the new camera (moved `--move` cm right and yawed `--yaw` deg); PSNR of our warp
 and of the naive diffuse warp (everything warped with the first-hit depth) against it, over all
 pixels except the disoccluded ones (first hit not seen by the old camera) and inside the specular
@@ -44,7 +44,7 @@ def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=Tr
     from ..io.images import write_image
     from ..metrics import psnr
     from ..raytree.decode import DecodeOptions, decode
-    from ..raytree.scenarios import make_case
+    from ..synthetic.raytree_cases import make_case
     from ..raytree.warp import WarpOptions, naive_warp, warp_decoded
 
     rows, panels, hist = [], [], None
@@ -171,7 +171,8 @@ def speed_case(size, tree_file: Path | None = None):
     """(tree, new camera) of the chrome case at `size`: traced here, or read from `tree_file`
     (written by --save-speed-tree; lets the speed run happen on a machine without the tracer's
     open3d, e.g. a GPU box). The new camera is the same 5 cm / 3 degree move."""
-    from ..raytree.scenarios import make_case, moved_camera
+    from ..scene import moved_camera
+    from ..synthetic.raytree_cases import make_case
     if tree_file is not None:
         from ..raytree.encoding import read_tree
         tree = read_tree(tree_file)
@@ -282,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.scene == "tiny":
         args.cases, args.size, args.supersample, args.speed_size = "mirror", (160, 120), 1, (320, 240)
     cases = [c for c in args.cases.split(",") if c]
-    from ..raytree.scenarios import CASES
+    from ..synthetic.raytree_cases import CASES
     bad = [c for c in cases if c not in CASES]
     if bad or args.supersample < 1 or args.supersample % 2 == 0 or args.repeats < 1:
         print(f"error: bad --cases {bad} / --supersample (odd >= 1) / --repeats (>= 1)", file=sys.stderr)

@@ -17,7 +17,7 @@ from .reflection import _forget_passes, _loader, _psnr, read_gt
 def _visible_in_k(tg, kg, tol: float):
     """t's reflector pixels (sel) whose surface point (a) and mirror-world point (b) are both seen
     by k, inside k's reflector mask, by the depth tests (ok)."""
-    from ..geometry.decompose import _nearest, depth_consistent, project
+    from ..geometry.decompose_terms import _nearest, depth_consistent, project
     sel = tg.mask & (tg.D1 > 0)
     a, za = project(kg.camera, tg.X0[sel])
     b, zb = project(kg.camera, tg.X1[sel])
@@ -35,7 +35,7 @@ def predict(tg, kg, R_k, tol: float = 0.05, layers=None, own_r=None) -> dict | N
     layer R_t (GT) on `sel`: `perfect_r` = I0_k(a) from `layers` + R_t, the prediction by a
     perfect reflection layer, whose error is the surface layer's resampling alone (the part both
     predictions share). None when fewer than 50 pixels are valid."""
-    from ..geometry.decompose import sample_bilinear
+    from ..geometry.decompose_terms import sample_bilinear
     sel, a, b, ok = _visible_in_k(tg, kg, tol)
     if ok.sum() < 50:
         return None
@@ -99,7 +99,7 @@ def view_weight_distance(t_cam, k_cam) -> float:
 def _through_own(kg, X, centre, D, pos, offset):
     """Where k's own mesh of depth D (optionally offset, geometry_step.py) is seen along the rays
     centre -> X: pos + J (eps + delta(pos)), the first-order ray-surface intersection."""
-    from ..geometry.decompose import sample_bilinear
+    from ..geometry.decompose_terms import sample_bilinear
     from ..geometry.geometry_step import shift_jacobian
     J, eps = shift_jacobian(kg.camera, X, X - centre, np.where(kg.mask, D, 0.0))
     dlt = 0.0 if offset is None else sample_bilinear(np.asarray(offset)[..., None], pos)[:, 0]
@@ -113,7 +113,7 @@ def rerender_own(tg, kg, R_k, m1_offset=None, tol: float = 0.05, m0_offset=None,
     rendering M1.ply of k at t gives) and, with `own_m0`, the surface layer where k's own M0
     (optionally offset: M0.ply) is seen, instead of t's surface points. Returns (target,
     layered) or None."""
-    from ..geometry.decompose import sample_bilinear
+    from ..geometry.decompose_terms import sample_bilinear
     sel, a, b, ok = _visible_in_k(tg, kg, tol)
     if ok.sum() < 50:
         return None
@@ -140,7 +140,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
     predictions blended per pixel by the renderer's Eq. 15 weights (`blended_*`; the unsplit
     image blended with the same weights)."""
     from ..config import build_config
-    from ..geometry.decompose import pose_distance
+    from ..geometry.decompose_terms import pose_distance
     from ..render.blend import view_weights
     from ..stages.reflection import ReflectionConfig, _decompose_reflector
     _, loader = _loader(ws, base, m1_noise)

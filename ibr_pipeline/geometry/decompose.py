@@ -6,7 +6,7 @@ R = beta * I1 (the paper's beta is a binary mask, so its I1 is our R); Eq. 3 is 
 constraint, I0 = I - R, and the box constraint of Eq. 7 (I0, I1 in [0, 1]) becomes
 0 <= R <= min(I, beta). The stored I1 is R / beta (beta = the reflectance, 1 when unknown).
 
-Flows. `ViewGeom` holds, per view, the surface points X0 (from the refined depth: M0) and the
+Flows. `ViewGeom` (decompose_terms.py) holds, per view, the surface points X0 (from the refined depth: M0) and the
 mirror-world points X1 (the planar-reflection geometry: M1). w_k'(u, M) = project_k'(X(u)).
 The data term Eq. 8 is evaluated at the neighbour's pixels q: the surface layer of view k seen at
 q comes from a_q = project_k(X0_k'(q)) and the reflection layer from b_q = project_k(X1_k'(q)) —
@@ -20,7 +20,6 @@ offsets of M0 and M1 (Eq. 7's mesh variables, Eq. 9's cotangent Laplacian). nump
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,31 +27,10 @@ import numpy as np
 from ..config import Options, param
 from ..errors import ConfigError
 from ..scene import Camera
-from .block_pcg import _block_pcg  # moved out (module size); tests import it from here
-
-
-@dataclass
-class ViewGeom:
-    """One view seen at working resolution, for one reflector."""
-
-    name: str
-    camera: Camera
-    image: np.ndarray  # (H, W, 3) linear [0, 1]
-    depth: np.ndarray  # (H, W) z-depth of the surface (M0), 0 = none
-    mask: np.ndarray  # (H, W) bool, beta support of the reflector
-    X0: np.ndarray  # (H, W, 3) surface points (NaN where none)
-    X1: np.ndarray  # (H, W, 3) mirror-world points inside mask (NaN elsewhere)
-    D1: np.ndarray  # (H, W) z-depth of X1 in this camera (0 = none)
-
-    def __post_init__(self) -> None:
-        H, W = self.camera.height, self.camera.width
-        for name, shape in (("image", (H, W, 3)), ("depth", (H, W)), ("mask", (H, W)),
-                            ("X0", (H, W, 3)), ("X1", (H, W, 3)), ("D1", (H, W))):
-            a = getattr(self, name)
-            if np.shape(a) != shape:
-                raise ValueError(f"ViewGeom {self.name}: {name} must be {shape}, got {np.shape(a)}")
-            if name == "image" and not np.all(np.isfinite(a)):
-                raise ValueError(f"ViewGeom {self.name}: image has non-finite values")
+from .block_pcg import _block_pcg
+from .decompose_terms import (DataTerm, ViewGeom, _nearest, _sample_np, bilinear_matrix,
+                              depth_consistent, pose_distance, project, rodrigues,
+                              sample_bilinear)
 
 
 @dataclass(frozen=True)
@@ -125,43 +103,6 @@ class DecomposeOptions(Options):
         return max(2, round(self.m1_cell_640 * width / 640))
 
 
-def project(camera: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(..., 3) world points -> (..., 2) pixel positions and (...) z-depth (NaN propagates)."""
-    X = np.asarray(X, np.float64)
-    if X.shape[-1] != 3:
-        raise ValueError(f"points must be (..., 3), got {X.shape}")
-    shp = X.shape[:-1]
-    flat = X.reshape(-1, 3)
-    cam = flat @ camera.R.T + camera.t
-    z = cam[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (cam @ camera.K.T)[:, :2] / z[:, None]
-    return uv.reshape(shp + (2,)), z.reshape(shp)
-
-
-def _nearest(img: np.ndarray, pos: np.ndarray, fill=0):
-    H, W = img.shape[:2]
-    x = np.rint(np.nan_to_num(pos[..., 0], nan=-1)).astype(np.int64)
-    y = np.rint(np.nan_to_num(pos[..., 1], nan=-1)).astype(np.int64)
-    inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
-    out = np.full(pos.shape[:-1] + img.shape[2:], fill, dtype=img.dtype)
-    out[inside] = img[y[inside], x[inside]]
-    return out, inside
-
-
-def depth_consistent(depth_map: np.ndarray, pos: np.ndarray, z: np.ndarray, tol: float) -> np.ndarray:
-    """Occlusion test: the map's depth at `pos` (nearest pixel) equals z within tol * min."""
-    d, inside = _nearest(depth_map, pos, 0.0)
-    ok = inside & (d > 0) & np.isfinite(z) & (z > 0)
-    return ok & (np.abs(d - z) < tol * np.minimum(d, np.where(ok, z, 1.0)))
-
-
-def pose_distance(a: Camera, b: Camera) -> float:
-    """Camera-pose distance used to sort neighbours: centre distance (m) + rotation angle (rad)."""
-    cosang = (np.trace(a.R @ b.R.T) - 1) / 2
-    return float(np.linalg.norm(a.center - b.center) + math.acos(np.clip(cosang, -1, 1)))
-
-
 def select_neighbours(ref: ViewGeom, others: list[ViewGeom], opts: DecomposeOptions) -> list[tuple[str, float]]:
     """N_k (§4.3.1): render M1_k in the other views (project its points), depth overlap test
     (difference < 0.05 min(depth)) inside beta; keep views with > 30 % overlap, sort by pose
@@ -181,14 +122,6 @@ def select_neighbours(ref: ViewGeom, others: list[ViewGeom], opts: DecomposeOpti
             out.append((o.name, float(frac), pose_distance(ref.camera, o.camera)))
     out.sort(key=lambda t: t[2])
     return [(nm, fr) for nm, fr, _ in out[:opts.max_neighbours]]
-
-
-def _sample_np(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    import cv2
-
-    p = np.nan_to_num(pos, nan=-10).astype(np.float32)
-    return cv2.remap(img.astype(np.float32), p[..., 0], p[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE)
 
 
 def surface_flow(ref: ViewGeom, nb: ViewGeom, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -224,19 +157,6 @@ def init_layers(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions,
     return R, info
 
 
-@dataclass
-class DataTerm:
-    """Eq. 8 at one neighbour: its pixels q (in its beta), target colours I_k'(q), positions a_q
-    (surface layer) and b_q (reflection layer) in the reference view, all valid."""
-
-    name: str
-    target: np.ndarray  # (N, 3)
-    a: np.ndarray  # (N, 2)
-    b: np.ndarray  # (N, 2)
-    X1: np.ndarray  # (N, 3) mirror-world points of q (for the (R, T) step)
-    X0: np.ndarray | None = None  # (N, 3) surface points of q (M0's vertex offsets)
-
-
 def build_data_terms(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions) -> list[DataTerm]:
     out = []
     sat_ref = np.any(ref.image >= opts.saturation, axis=2)
@@ -252,52 +172,6 @@ def build_data_terms(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions)
             continue
         out.append(DataTerm(nb.name, nb.image[q][ok], a[ok], b[ok], nb.X1[q][ok], nb.X0[q][ok]))
     return out
-
-
-def bilinear_matrix(pos: np.ndarray, W: int, H: int):
-    """Sparse (N, H*W) matrix of bilinear interpolation weights at (N, 2) pixel positions,
-    positions clamped to the image (= torch grid_sample, align_corners=True, border padding)."""
-    import scipy.sparse as sp
-    p = np.asarray(pos, np.float64)
-    x = np.clip(np.nan_to_num(p[:, 0], nan=0.0), 0, W - 1)
-    y = np.clip(np.nan_to_num(p[:, 1], nan=0.0), 0, H - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
-    ax, ay = x - x0, y - y0
-    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-    N = len(p)
-    rows = np.repeat(np.arange(N), 4)
-    cols = np.stack([y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1], 1).reshape(-1)
-    vals = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], 1).reshape(-1)
-    return sp.csr_matrix((vals, (rows, cols)), shape=(N, H * W))
-
-
-def bilinear_cells(pos: np.ndarray, H: int, W: int):
-    """The cell of each (N, 2) position (clamped to the image): x0, y0, x1, y1 and the (N, 1)
-    fractions ax, ay — shared by the sampler and its exact gradient (geometry_step.py)."""
-    x = np.clip(pos[:, 0], 0, W - 1)
-    y = np.clip(pos[:, 1], 0, H - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
-    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
-    return x0, y0, np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1), ax, ay
-
-
-def sample_bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """(N, C) bilinear samples of an (H, W, C) image at (N, 2) positions (clamped)."""
-    x0, y0, x1, y1, ax, ay = bilinear_cells(pos, *img.shape[:2])
-    return ((1 - ay) * ((1 - ax) * img[y0, x0] + ax * img[y0, x1])
-            + ay * ((1 - ax) * img[y1, x0] + ax * img[y1, x1]))
-
-
-def rodrigues(w: np.ndarray) -> np.ndarray:
-    """3x3 rotation of the axis-angle vector `w` (Rodrigues' formula)."""
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        return np.eye(3)
-    k = np.asarray(w, np.float64) / th
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * Kx + (1 - np.cos(th)) * Kx @ Kx
 
 
 class Problem:

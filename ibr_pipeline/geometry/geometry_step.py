@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .decompose import DataTerm, ViewGeom, bilinear_cells, project, sample_bilinear
+from .decompose_terms import DataTerm, ViewGeom, bilinear_cells, project, rodrigues, sample_bilinear
 from .mesh_laplacian import ControlMesh, cotangent_laplacian, grid_control_mesh
 
 
@@ -331,7 +331,6 @@ def optimised_m1(g, mask, offset, pose):
     """M1's points and z-depth after the geometry step (Eq. 7): the vertex offsets move each point
     along the view's ray to depth D1 (1 + offset) (LayerOffsets), then the rigid (R, T) about
     the centre of the initial M1 (decompose.Problem.centre). Returns (H, W, 3) and (H, W)."""
-    from .decompose import rodrigues
     X1, D1 = g.X1.copy(), g.D1
     sel = mask & (g.D1 > 0)
     c = np.nanmean(X1[sel], axis=0) if sel.any() else np.zeros(3)

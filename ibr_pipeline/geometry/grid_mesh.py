@@ -22,58 +22,7 @@ import numpy as np
 
 from ..scene import Camera
 from .depth_edges import PairEdges
-
-
-def grid_faces(valid: np.ndarray, edges: PairEdges, cells: np.ndarray | None = None) -> np.ndarray:
-    """(F, 3) int64 faces over the pixel grid (vertex index = y * W + x), two per pixel square,
-    none with a side across a depth edge or a corner without depth. Counter-clockwise as seen by
-    the camera (OpenCV: image y down). `cells`: optional (H-1, W-1) bool, only those squares."""
-    return CellTriangles(valid, edges).faces(cells)
-
-
-class CellTriangles:
-    """The pixel squares' corner indices (a, b, c, d) and the masks of their four possible
-    triangles (a, c, b), (b, c, d) [split along b-c] and (a, c, d), (a, d, b) [split along a-d];
-    computed once for grid_faces, full_cells and the quadtree pre-merge."""
-
-    def __init__(self, valid: np.ndarray, edges: PairEdges):
-        self.corners, self.masks = _cell_triangles(valid, edges)
-
-    def faces(self, cells: np.ndarray | None = None) -> np.ndarray:
-        a, b, c, d = self.corners
-        masks = self.masks if cells is None else [m & cells for m in self.masks]
-        tris = ((a, c, b), (b, c, d), (a, c, d), (a, d, b))
-        faces = [np.stack([t[m] for t in tri], 1) for m, tri in zip(masks, tris)]
-        return np.concatenate(faces, 0).astype(np.int64)
-
-    def full(self) -> np.ndarray:
-        """(H-1, W-1) bool: pixel squares that get both of their triangles (no cut, all depths)."""
-        t1, t2, t3, t4 = self.masks
-        return (t1 & t2) | (t3 & t4)
-
-
-def _cell_triangles(valid: np.ndarray, edges: PairEdges):
-    """Corner indices (a, b, c, d) of every pixel square and the masks of its four possible
-    triangles (a, c, b), (b, c, d) [split along b-c] and (a, c, d), (a, d, b) [split along a-d]."""
-    valid = np.asarray(valid, bool)
-    h, w = valid.shape
-    if edges.right.shape != (h, w - 1) or edges.down.shape != (h - 1, w):
-        raise ValueError(f"edges do not match a {h}x{w} grid")
-    y, x = np.mgrid[0:h - 1, 0:w - 1]
-    a = y * w + x        # (y, x)
-    b = a + 1            # (y, x+1)
-    c = a + w            # (y+1, x)
-    d = c + 1            # (y+1, x+1)
-    va, vb, vc, vd = valid[:-1, :-1], valid[:-1, 1:], valid[1:, :-1], valid[1:, 1:]
-    top, bottom = edges.right[:-1, :], edges.right[1:, :]      # a-b, c-d
-    left, right = edges.down[:, :-1], edges.down[:, 1:]        # a-c, b-d
-    # diagonal b-c (anti) unless it is an edge and a-d (diag) is not
-    use_ad = edges.anti & ~edges.diag
-    t1 = ~use_ad & va & vb & vc & ~top & ~left & ~edges.anti
-    t2 = ~use_ad & vb & vc & vd & ~bottom & ~right & ~edges.anti
-    t3 = use_ad & va & vc & vd & ~left & ~bottom & ~edges.diag
-    t4 = use_ad & va & vd & vb & ~right & ~top & ~edges.diag
-    return (a, b, c, d), (t1, t2, t3, t4)
+from .grid_faces import grid_faces, quadtree_faces
 
 
 def reindex(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +72,7 @@ class DepthRenderer:
     def _build_rays(self) -> None:
         import open3d as o3d
 
-        from ..render import raycast
+        from . import raycast
 
         o, d = raycast.camera_rays(self.camera)
         self._rays = o3d.core.Tensor(np.concatenate([o, d], axis=1).astype(np.float32))
@@ -133,7 +82,7 @@ class DepthRenderer:
     def render(self, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         from scipy.ndimage import binary_dilation
 
-        from ..render import raycast
+        from . import raycast
 
         cam = self.camera
         if len(faces) == 0:
@@ -257,7 +206,7 @@ def grid_mesh(depth: np.ndarray, camera: Camera, edges: PairEdges,
               return_depth: bool = False, premerge_tol: float = 0.0):
     """World-space (vertices (V, 3), faces (F, 3)) of the cut pixel-grid mesh of a depth image;
     with `return_depth` also the mesh's own (H, W) depth in `camera` (see grid_mesh_depth) and the
-    pre-merge report. `premerge_tol` > 0: planar blocks merged first (quadtree_mesh; the depth
+    pre-merge report. `premerge_tol` > 0: planar blocks merged first (grid_faces.quadtree_faces; the depth
     returned is then the grid's, which the merged mesh matches within ~2 premerge_tol)."""
     from .normals import points_from_depth
 
@@ -265,8 +214,6 @@ def grid_mesh(depth: np.ndarray, camera: Camera, edges: PairEdges,
     if depth.shape != (camera.height, camera.width):
         raise ValueError(f"depth {depth.shape} does not match camera {camera.width}x{camera.height}")
     if premerge_tol > 0:
-        from .quadtree_mesh import quadtree_faces
-
         faces, grid_used, report = quadtree_faces(depth, edges, premerge_tol)
         grid_used = np.flatnonzero(grid_used)
     else:

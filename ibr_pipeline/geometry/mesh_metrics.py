@@ -35,7 +35,7 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
     """(N,) unsigned distance of each point to the mesh surface (open3d RaycastingScene)."""
     import open3d as o3d
 
-    from ..render.raycast import build_scene
+    from .raycast import build_scene
     if len(faces) == 0:
         return np.full(len(points), np.inf)
     scene = build_scene(vertices, faces)

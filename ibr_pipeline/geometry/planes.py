@@ -173,7 +173,7 @@ def mirror_points(camera: Camera, plane, mask: np.ndarray, scene,
     `min_gap` to the plane (noise / thickness of a fused G at the reflector) are skipped; rays
     that leave G through a hole end on the box `bounds` = (lo, hi) when given. Returns (H, W, 3) world
     points (NaN where there is none) and their (H, W) z-depth in this camera (0 where none)."""
-    from ..render.raycast import cast
+    from .raycast import cast
 
     H, W = camera.height, camera.width
     mask = np.asarray(mask, bool)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose import sample_bilinear, depth_consistent, project
+from .decompose_terms import sample_bilinear, depth_consistent, project
 from .planes import mirror_matrix
 
 

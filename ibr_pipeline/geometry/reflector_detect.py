@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose import ViewGeom, _nearest, _sample_np, depth_consistent, pose_distance, project
+from .decompose_terms import ViewGeom, _nearest, _sample_np, depth_consistent, pose_distance, project
 
 
 def warp_errors(ref: ViewGeom, nb: ViewGeom, tol: float = 0.05) -> tuple[float, float, int]:

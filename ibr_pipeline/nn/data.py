@@ -183,7 +183,7 @@ class StandInRenderer:
             with np.load(geom) as z:
                 return z["depth"].astype(np.float32)
         from ..io.mesh import read_ply
-        from ..render.raycast import build_scene, render_depth
+        from ..geometry.raycast import build_scene, render_depth
         if self._mesh_scene is None:
             m = read_ply(self.folder / "gt/mesh.ply")
             self._mesh_scene = build_scene(m.vertices, m.faces)

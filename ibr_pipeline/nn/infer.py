@@ -64,7 +64,7 @@ class SuperSampler:
     @staticmethod
     def load(ws, device: str = "auto", self_ensemble: bool = False) -> "SuperSampler":
         """Load a workspace's trained DSRNet (nn/dsrnet.pt); `ws` may also be a .pt path."""
-        from .train import load_model, resolve_device
+        from .model import load_model, resolve_device
 
         path = Path(ws) if isinstance(ws, (str, Path)) else ws.path(MODEL_KEY)
         if path.is_dir():
@@ -96,7 +96,7 @@ class SuperSampler:
         t = lambda a: torch.from_numpy(np.ascontiguousarray(  # noqa: E731
             a.transpose(2, 0, 1) if a.ndim == 3 else a[None]))[None].to(self.device).contiguous(
                 memory_format=torch.channels_last)
-        from .train import cpu_threads, torch_threads
+        from .model import cpu_threads, torch_threads
         with torch.no_grad(), torch_threads(cpu_threads()):
             out = run_network(self.model, t(color), t(depth), t(prev[0]), t(prev[1]), t(flow),
                               self.self_ensemble)

@@ -14,7 +14,6 @@ with `torch.load(weights_only=True)`.
 """
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import time
@@ -28,11 +27,10 @@ import torch
 from ..workspace import atomic_path
 from .data import Sample, to_tensors
 from .losses import build_features, image_loss, warp_loss
-from .model import DSRNet, DSRNetConfig
+from .model import DSRNet, DSRNetConfig, cpu_threads, resolve_device, torch_threads
 from .options import TrainOptions
 
 log = logging.getLogger("ibr_pipeline.nn.train")
-MODEL_FORMAT = "ibr_pipeline.dsrnet/1"
 
 
 @dataclass
@@ -43,41 +41,6 @@ class TrainResult:
     seconds: float
     history: dict = field(default_factory=dict)
     resumed_from: int = 0
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        from ..errors import InputError
-        raise InputError("supersample.device: cuda requested but torch sees no CUDA device")
-    return torch.device(name)
-
-
-def cpu_threads(requested: int = 0) -> int:
-    """CPU threads for torch. 0 = auto: all cores, but 1 when the machine is already busy (load
-    average >= cores): OpenMP threads spin-wait and a 2-thread step was measured 7x slower than a
-    1-thread step on a loaded 2-core machine (docs/DSRNET.md)."""
-    import os
-
-    if requested > 0:
-        return requested
-    cores = os.cpu_count() or 1
-    try:
-        busy = os.getloadavg()[0] >= cores
-    except OSError:
-        busy = False
-    return 1 if busy else cores
-
-
-@contextlib.contextmanager
-def torch_threads(n: int):
-    old = torch.get_num_threads()
-    torch.set_num_threads(max(1, n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 def _batch(samples: Sequence[Sample], opts: TrainOptions, step: int, device,
@@ -133,29 +96,6 @@ def evaluate(model: DSRNet, samples: Sequence[Sample], device, baselines: bool =
                 acc.setdefault("ssim" + suffix, []).append(metrics.ssim(s.target, img))
     model.train()
     return {k: float(np.mean(v)) for k, v in acc.items()}
-
-
-def save_model(path: Path, model: DSRNet, extra: dict | None = None) -> None:
-    state = {"format": MODEL_FORMAT, "config": model.config.to_dict(),
-             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
-    state.update(extra or {})
-    with atomic_path(Path(path)) as tmp:
-        torch.save(state, tmp)
-
-
-def load_model(path: Path, device="cpu") -> DSRNet:
-    from ..errors import InputError
-    try:
-        state = torch.load(Path(path), map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise InputError(f"{path}: no trained DSRNet (run `ibr supersample` first)") from None
-    except Exception as e:  # noqa: BLE001  (corrupt/foreign file: one line for the user)
-        raise InputError(f"{path}: cannot read DSRNet weights ({type(e).__name__}: {e})") from None
-    if not isinstance(state, dict) or state.get("format") != MODEL_FORMAT:
-        raise InputError(f"{path}: not a DSRNet model file ({MODEL_FORMAT})")
-    model = DSRNet(DSRNetConfig.from_dict(state["config"]))
-    model.load_state_dict(state["state_dict"])
-    return model.to(device).eval()
 
 
 def _save_checkpoint(path: Path, model, optim, step: int, history: dict, fingerprint: str) -> None:

@@ -57,7 +57,7 @@ def register(sub) -> None:
 
 def _pick_camera(args, tree, target):
     from ..scene import Camera, cameras_from_json
-    from .scenarios import moved_camera
+    from ..scene import moved_camera
     if args.camera is not None:
         if not args.camera.is_file():
             raise InputError(f"--camera {args.camera}: file not found")

@@ -11,13 +11,14 @@ a non-root parent are reconstructed the same way from its positions.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from . import ops
 from .encoding import FRESNEL_PANE, REFLECTIVE, RayTree
+from .types import Decoded, record_decode_timings
 
 
 @dataclass
@@ -32,31 +33,6 @@ class DecodeOptions:
                                    # whose distance to the camera differs from the centre's by
                                    # more than this fraction (edge-stopping: a sphere's rim no
                                    # longer takes the wall's normals); 0: the paper's plain blur
-
-
-@dataclass
-class Decoded:
-    """Decoded buffers of one ray tree, torch tensors on one device (float32)."""
-    tree: RayTree
-    device: torch.device
-    K: torch.Tensor                 # (3, 3)
-    cam_from_world: torch.Tensor    # (4, 4)
-    center: torch.Tensor            # (3,) c_old
-    rgb: list[torch.Tensor]         # per node (H, W, 3) (specular nodes: zero outside `box`)
-    depth: list[torch.Tensor]       # per node (H, W)
-    valid: list[torch.Tensor]       # per node (H, W) bool
-    pos: list[torch.Tensor]         # per node (H, W, 3) world positions (W_d, W_r, W_f, ...)
-    normal: list[torch.Tensor | None]  # per node (H, W, 3) normals (reconstructed) or None
-    dirs: list[torch.Tensor | None] = field(default_factory=list)  # per node unit dirs (in `box`)
-    ior: torch.Tensor | None = None      # (H, W)
-    fresnel: torch.Tensor | None = None  # (H, W) long
-    box: tuple | None = None             # (y0, y1, x0, x1): the old pixels with a specular
-                                         # node (+ margin); normals / W_s are computed there only
-    cache: dict = field(default_factory=dict)  # samplers etc. reused by every warp of this tree
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self.tree.size
 
 
 def reconstruct_normals(W: torch.Tensor, valid: torch.Tensor, eye: torch.Tensor | None = None,
@@ -248,14 +224,6 @@ def decode(tree: RayTree, device: str | torch.device = "cpu", options: DecodeOpt
     t3 = time.perf_counter()
     record_decode_timings(timings, tic, t1, t2, t3)
     return Decoded(tree, dev, K, T, center, rgb, depth, valid, pos, normal, dirs, ior, fres, box)
-
-
-def record_decode_timings(timings: dict | None, tic: float, t1: float, t2: float, t3: float) -> None:
-    """Table 1's three decode rows from the stage boundaries (both backends)."""
-    if timings is not None:
-        timings["decode_diffuse"] = t1 - tic
-        timings["decode_normal"] = t2 - t1
-        timings["decode_specular"] = t3 - t2
 
 
 def eta_of(ior: torch.Tensor, fresnel: torch.Tensor) -> torch.Tensor:

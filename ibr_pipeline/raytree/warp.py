@@ -26,6 +26,7 @@ from .diffuse import diffuse_flow, projection_matrix
 from .encoding import FRESNEL_DIELECTRIC, FRESNEL_NONE, FRESNEL_PANE, REFLECTIVE, RayTree
 from .fill import push_pull
 from .specular import SpecularOptions, position_fill, quad_table, specular_flow
+from .types import WarpResult
 
 
 @dataclass
@@ -51,22 +52,6 @@ class WarpOptions:
                                   ("normal_ksize", self.decode.normal_ksize, 1, 31)):
             if not (lo <= val <= hi):
                 raise InputError(f"warp option {name} must be in [{lo}, {hi}], got {val}")
-
-
-@dataclass
-class WarpResult:
-    image: np.ndarray                 # (Hn, Wn, 3) composited new view
-    nodes: list[np.ndarray]           # per node (Hn, Wn, 3) warped + filled radiance (pre-Fresnel)
-    fresnel: np.ndarray               # (Hn, Wn) reflection weight F used (1 where none)
-    diffuse_ok: np.ndarray            # (Hn, Wn) diffuse flow defined (else disocclusion hole)
-    region: list[np.ndarray]          # per node (Hn, Wn) the node contributes at this new pixel
-    defined: list[np.ndarray]         # per node (Hn, Wn) flow found (specular: Delta <= eps)
-    filled: list[np.ndarray] = field(default_factory=list)  # per node (Hn, Wn) undefined pixels
-                                      # filled in the position domain (specular.position_fill)
-    history: dict = field(default_factory=dict)   # node -> (pixels (M, 2), Delta (steps+1, M)
-                                                  # per descent step, final Delta (M,) after
-                                                  # the discrete check)
-    timings: dict = field(default_factory=dict)   # seconds per stage (Table 1)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:

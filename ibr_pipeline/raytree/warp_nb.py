@@ -13,7 +13,7 @@ import torch
 from . import nbkernels as nk
 from . import nbsearch as ns
 from . import ops
-from .decode import record_decode_timings
+from .types import Decoded, WarpResult, record_decode_timings
 from .encoding import FRESNEL_NONE, REFLECTIVE, RayTree
 
 
@@ -33,8 +33,7 @@ def supported(tree: RayTree, opts) -> bool:
 
 
 def decode(tree: RayTree, opts, timings: dict | None = None):
-    """decode.decode on the CPU with the numba kernels (§3.3); returns decode.Decoded."""
-    from .decode import Decoded
+    """decode.decode on the CPU with the numba kernels (§3.3); returns types.Decoded."""
     tic = time.perf_counter()
     n = tree.n_nodes
     K = torch.as_tensor(tree.K, dtype=torch.float32)
@@ -172,9 +171,8 @@ def _position_fill(qc, dfn, v, pix, T, Wn, Hn, s) -> np.ndarray:
 
 
 def warp_decoded(dec, camera, o, record_history: bool = False):
-    """warp._warp_decoded with the numba kernels; returns warp.WarpResult."""
+    """warp._warp_decoded with the numba kernels; returns types.WarpResult."""
     from .diffuse import projection_matrix
-    from .warp import WarpResult
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
     tree = dec.tree

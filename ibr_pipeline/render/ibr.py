@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .. import layout as L
 from ..config import Options, param
 from ..errors import InputError
 from ..scene import Camera
@@ -136,8 +137,7 @@ class IBRModel:
         """The per-view meshes of workspace `ws` (after view_mesh; two layers after reflection)."""
         from tqdm import tqdm
 
-        from ..stages.common import registered_cameras
-        cams = registered_cameras(ws)
+        cams = L.registered_cameras(ws)
         scene = ws.scene()
         s = settings or RenderSettings()
         views = []
@@ -408,20 +408,20 @@ def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
             raise InputError(f"{ws.path(key)}: image is {a.shape[1]}x{a.shape[0]}, camera says {W}x{H}")
         return a
 
-    edges = _edges(ws.path(f"{vdir}/edges.png"))
+    edges = _edges(ws.path(f"{vdir}/{L.EDGES}"))
     if edges.shape != (H, W):
-        raise InputError(f"{ws.path(f'{vdir}/edges.png')}: size {edges.shape[::-1]} is not {W}x{H}")
+        raise InputError(f"{ws.path(f'{vdir}/{L.EDGES}')}: size {edges.shape[::-1]} is not {W}x{H}")
     alpha0 = blend.texture_alpha(edges, s.feather_px, s.edge_decay_px)
     info = {}
-    lj = ws.path(f"{vdir}/layers.json")
+    lj = ws.path(f"{vdir}/{L.LAYERS}")
     if layers and lj.is_file():
         try:
             info = json.loads(lj.read_text())
         except json.JSONDecodeError as e:
             raise InputError(f"{lj}: malformed JSON ({e})") from None
     if layers and info.get("reflector") is not None:
-        m0, m1 = read_ply(ws.path(f"{vdir}/M0.ply")), read_ply(ws.path(f"{vdir}/M1.ply"))
-        bpath = ws.path(f"{vdir}/beta.npy")
+        m0, m1 = read_ply(ws.path(f"{vdir}/{L.M0}")), read_ply(ws.path(f"{vdir}/{L.M1}"))
+        bpath = ws.path(f"{vdir}/{L.BETA}")
         try:
             beta = np.load(bpath).astype(np.float32)
         except (OSError, ValueError) as e:
@@ -429,9 +429,9 @@ def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
         if beta.shape != (H, W) or not np.all(np.isfinite(beta)):
             raise InputError(f"{bpath}: beta must be finite with shape {(H, W)}, got {beta.shape}")
         beta = np.clip(beta, 0.0, 1.0)
-        l0 = LayerData(m0.vertices, m0.faces, img(f"{vdir}/I0.png"), alpha0, beta)
+        l0 = LayerData(m0.vertices, m0.faces, img(f"{vdir}/{L.I0}"), alpha0, beta)
         alpha1 = blend.texture_alpha(edges | mask_boundary(beta > 0), s.feather_px, s.edge_decay_px)
-        l1 = LayerData(m1.vertices, m1.faces, img(f"{vdir}/I1.png"), alpha1)
+        l1 = LayerData(m1.vertices, m1.faces, img(f"{vdir}/{L.I1}"), alpha1)
         return ViewData(name, camera, (l0, l1))
-    m = read_ply(ws.path(f"{vdir}/mesh.ply"))
+    m = read_ply(ws.path(f"{vdir}/{L.MESH}"))
     return ViewData(name, camera, (LayerData(m.vertices, m.faces, img(image_key), alpha0), None))

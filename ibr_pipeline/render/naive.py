@@ -15,9 +15,10 @@ import time
 
 import numpy as np
 
-from ..geometry.decompose import sample_bilinear
+from .. import layout as L
+from ..geometry.decompose_terms import sample_bilinear
 from ..scene import Camera
-from . import raycast
+from ..geometry import raycast
 from .blend import fill_holes
 from .selection import view_distance
 
@@ -118,12 +119,11 @@ def from_workspace(ws, lam: float = 0.1) -> NaiveWarp | None:
     """The baseline over a workspace's global mesh and registered captured views (None when the
     global mesh or the cameras are missing)."""
     from ..io.mesh import read_ply
-    from ..stages.common import registered_cameras
 
-    mesh_path = ws.path("global/mesh.ply")
+    mesh_path = ws.path(L.GLOBAL_MESH)
     if not mesh_path.is_file():
         return None
-    cams = registered_cameras(ws)
+    cams = L.registered_cameras(ws)
     if not cams:
         return None
     scene = ws.scene()

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import layout as L
 from ..errors import InputError
 from ..scene import Camera, cameras_from_json, read_reflectors
 from . import blend
@@ -106,7 +107,7 @@ class GroundTruth:
     def _scene(self, i: int):
         if i not in self._scenes:
             from ..io.mesh import read_ply
-            from .raycast import build_scene
+            from ..geometry.raycast import build_scene
             if self._mesh is None:
                 self._mesh = read_ply(self.root / "gt" / "mesh.ply")
             plane = np.asarray(self.reflectors[i].plane)
@@ -134,7 +135,7 @@ class GroundTruth:
 
     def virtual_depth(self, camera: Camera, depth: np.ndarray, beta: np.ndarray) -> np.ndarray:
         """(H, W) z-depth of the reflection layer's virtual points (0 outside reflectors)."""
-        from .raycast import camera_rays, cast, hit_depth
+        from ..geometry.raycast import camera_rays, cast, hit_depth
         out = np.zeros(depth.shape, np.float64)
         refl = (beta > 0) & (depth > 0)
         if not refl.any() or not self.reflectors:
@@ -205,26 +206,26 @@ def write_gt_workspace(input_root: Path, ws_root: Path, layers: bool = True,
     from ..stages import STAGES, stage_by_name
     run(STAGES, ws, load_configs(STAGES, ws), [stage_by_name("ingest")], progress=False)
     gt = GroundTruth(input_root)
-    ws.write_text("global/cameras.json", cameras_to_json(gt.cameras))
+    ws.write_text(L.REGISTERED_CAMERAS, cameras_to_json(gt.cameras))
     for name, cam in gt.cameras.items():
         vdir = ws.view_dir(name)
         depth = gt.geom(name)["depth"].astype(np.float32)
-        with ws.atomic_write(f"{vdir}/depth.npy") as f:
+        with ws.atomic_write(f"{vdir}/{L.DEPTH}") as f:
             np.save(f, depth)
-        write_image(ws.path(f"{vdir}/edges.png"), depth_edges(depth).astype(np.uint8) * 255)
+        write_image(ws.path(f"{vdir}/{L.EDGES}"), depth_edges(depth).astype(np.uint8) * 255)
         v0, f0 = simplified_grid_mesh(cam, depth, step)
-        write_ply(ws.path(f"{vdir}/mesh.ply"), Mesh(v0, f0))
+        write_ply(ws.path(f"{vdir}/{L.MESH}"), Mesh(v0, f0))
         if not layers:
             continue
         vd = gt.view(name, True, step)
         l1 = vd.layers[1]
-        ws.write_json(f"{vdir}/layers.json", {"reflector": None if l1 is None else "gt"})
+        ws.write_json(f"{vdir}/{L.LAYERS}", {"reflector": None if l1 is None else "gt"})
         if l1 is None:
             continue
         l0 = vd.layers[0]
-        write_ply(ws.path(f"{vdir}/M0.ply"), Mesh(l0.vertices, l0.faces))
-        write_ply(ws.path(f"{vdir}/M1.ply"), Mesh(l1.vertices, l1.faces))
-        write_image(ws.path(f"{vdir}/I0.png"), l0.rgb)
-        write_image(ws.path(f"{vdir}/I1.png"), l1.rgb)
-        with ws.atomic_write(f"{vdir}/beta.npy") as f:
+        write_ply(ws.path(f"{vdir}/{L.M0}"), Mesh(l0.vertices, l0.faces))
+        write_ply(ws.path(f"{vdir}/{L.M1}"), Mesh(l1.vertices, l1.faces))
+        write_image(ws.path(f"{vdir}/{L.I0}"), l0.rgb)
+        write_image(ws.path(f"{vdir}/{L.I1}"), l1.rgb)
+        with ws.atomic_write(f"{vdir}/{L.BETA}") as f:
             np.save(f, l0.beta.astype(np.float32))

@@ -3,7 +3,6 @@
 Each stage lives in its own module `stages/<name>.py`, which defines `STAGE` (a runner.Stage) and
 keeps its config dataclass at the top. Heavy libraries (open3d, torch, pycolmap, moderngl) are
 imported inside the stage's functions, so importing this table stays fast (`ibr --help`).
-A stage whose `run` is None is planned but not built yet; `ibr status` and `ibr run` say so.
 Bump a stage's `version` whenever a change alters what it writes: every view reruns.
 The files each stage reads and writes are listed in docs/PIPELINE.md.
 """

@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import InputError
 from ..runner import Stage, StageContext
@@ -42,7 +43,7 @@ class EvaluateConfig(StageConfig):
 
 def _set_cameras(ctx: StageContext, s: str) -> dict:
     from ..scene import cameras_from_json
-    p = ctx.ws.path(f"renders/{s}/cameras.json")
+    p = ctx.ws.path(L.render_file(s, "cameras.json"))
     return cameras_from_json(p) if p.is_file() else {}
 
 
@@ -57,7 +58,7 @@ def _gt_image_key(ctx: StageContext, s: str, name: str, source: str) -> str | No
 
 
 def _source(ctx: StageContext, s: str) -> str:
-    p = ctx.ws.path(f"renders/{s}/timings.json")
+    p = ctx.ws.path(L.render_file(s, "timings.json"))
     try:
         return json.loads(p.read_text()).get("source", "") if p.is_file() else ""
     except (OSError, json.JSONDecodeError):
@@ -65,15 +66,15 @@ def _source(ctx: StageContext, s: str) -> str:
 
 
 def inputs(ctx: StageContext) -> list[str]:
-    keys = ["renders/test/cameras.json", "renders/test/timings.json"]
-    if ctx.config.naive and ctx.ws.path("global/mesh.ply").is_file():
-        keys += ["global/mesh.ply", "global/cameras.json"]
+    keys = [L.render_file("test", "cameras.json"), L.render_file("test", "timings.json")]
+    if ctx.config.naive and ctx.ws.path(L.GLOBAL_MESH).is_file():
+        keys += [L.GLOBAL_MESH, L.REGISTERED_CAMERAS]
     for s in ("test", "test_single", "fly", "fly_single"):
         cams = _set_cameras(ctx, s)
         if not cams:
             continue
-        keys += [f"renders/{s}/cameras.json"] if s != "test" else []
-        keys += [f"renders/{s}/{i:04d}.png" for i in range(len(cams))]
+        keys += [L.render_file(s, "cameras.json")] if s != "test" else []
+        keys += [L.render_file(s, f"{i:04d}.png") for i in range(len(cams))]
         src = _source(ctx, s)
         if s in ("test", "fly"):
             keys += [k for n in cams if (k := _gt_image_key(ctx, s, n, src))
@@ -83,12 +84,12 @@ def inputs(ctx: StageContext) -> list[str]:
 
 def outputs(ctx: StageContext) -> list[str]:
     n = len(_set_cameras(ctx, "test"))
-    out = ["eval/metrics.json", "eval/metrics.png"]
-    out += [f"eval/side_by_side/{i:04d}.png" for i in range(n)]
+    out = [L.EVAL_METRICS, L.EVAL_METRICS_PNG]
+    out += [f"{L.SIDE_BY_SIDE}/{i:04d}.png" for i in range(n)]
     if _set_cameras(ctx, "fly"):
-        out.append("eval/fly.mp4")
+        out.append(L.EVAL_FLY_MP4)
     if _energy_histories(ctx.ws):
-        out.append("eval/reflection_energy.png")
+        out.append(L.EVAL_ENERGY_PNG)
     return out
 
 
@@ -205,7 +206,7 @@ def run(ctx: StageContext) -> None:
     ws, cfg = ctx.ws, ctx.config
     test = _set_cameras(ctx, "test")
     if not test:
-        raise InputError(f"{ws.path('renders/test/cameras.json')}: no test renders (run render_views)")
+        raise InputError(f"{ws.path(L.render_file('test', 'cameras.json'))}: no test renders (run render_views)")
     source = _source(ctx, "test")
     single = _set_cameras(ctx, "test_single")
     oracle = _oracle_model(ctx) if cfg.oracle and source in ("heldout", "leave_one_out") else None
@@ -216,7 +217,7 @@ def run(ctx: StageContext) -> None:
     for i, (name, cam) in enumerate(test.items()):
         key = _gt_image_key(ctx, "test", name, source)
         ref = read_image(ws.path(key))
-        ours = read_image(ws.path(f"renders/test/{i:04d}.png"))
+        ours = read_image(ws.path(L.render_file("test", f"{i:04d}.png")))
         if ref.shape != ours.shape:
             raise InputError(f"{ws.path(key)}: ground truth is {ref.shape[1]}x{ref.shape[0]}, "
                              f"the render {ours.shape[1]}x{ours.shape[0]}")
@@ -224,7 +225,7 @@ def run(ctx: StageContext) -> None:
         entry = {"name": name, "reflector_pixels": int(mask.sum()) if mask is not None else 0}
         imgs = {"ours": ours}
         if single:
-            imgs["single"] = read_image(ws.path(f"renders/test_single/{i:04d}.png"))
+            imgs["single"] = read_image(ws.path(L.render_file("test_single", f"{i:04d}.png")))
         if oracle is not None:
             f = oracle.render(cam, exclude=(name,) if source == "leave_one_out" else ())
             imgs["oracle"] = np.clip(f.color, 0, 1)
@@ -239,7 +240,7 @@ def run(ctx: StageContext) -> None:
         per_view.append(entry)
         err = np.repeat(np.clip(np.abs(ours - ref).mean(2, keepdims=True) * 4, 0, 1), 3, 2)
         panel = [ours, ref, imgs.get("single", np.zeros_like(ours)), err]
-        write_image(ws.path(f"eval/side_by_side/{i:04d}.png"),
+        write_image(ws.path(f"{L.SIDE_BY_SIDE}/{i:04d}.png"),
                     np.concatenate([to_display(p) for p in panel], 1))
     if oracle is not None:
         oracle.release()
@@ -259,22 +260,22 @@ def run(ctx: StageContext) -> None:
     fly = _set_cameras(ctx, "fly")
     if fly:
         fsrc = _source(ctx, "fly")
-        frames = [read_image(ws.path(f"renders/fly/{i:04d}.png")) for i in range(len(fly))]
+        frames = [read_image(ws.path(L.render_file("fly", f"{i:04d}.png"))) for i in range(len(fly))]
         gkeys = [_gt_image_key(ctx, "fly", n, fsrc) for n in fly]
         gt = ([read_image(ws.path(k)) for k in gkeys]
               if all(k and ws.path(k).is_file() for k in gkeys) else None)
         result["temporal"] = {"ours": temporal(frames, gt)}
         fs = _set_cameras(ctx, "fly_single")
         if fs:
-            sframes = [read_image(ws.path(f"renders/fly_single/{i:04d}.png")) for i in range(len(fs))]
+            sframes = [read_image(ws.path(L.render_file("fly_single", f"{i:04d}.png"))) for i in range(len(fs))]
             result["temporal"]["single"] = temporal(sframes, gt)
         for k, v in result["temporal"]["ours"].items():
             summary[f"fly_{k}"] = v
-        write_mp4(ws.path("eval/fly.mp4"), frames, fps=cfg.fps)
-    _chart(ws.path("eval/metrics.png"), methods)
+        write_mp4(ws.path(L.EVAL_FLY_MP4), frames, fps=cfg.fps)
+    _chart(ws.path(L.EVAL_METRICS_PNG), methods)
     if hist := _energy_histories(ws):
-        _energy_chart(ws.path("eval/reflection_energy.png"), hist)
-    ws.write_json("eval/metrics.json", result)
+        _energy_chart(ws.path(L.EVAL_ENERGY_PNG), hist)
+    ws.write_json(L.EVAL_METRICS, result)
     log.info("evaluate: PSNR ours %.2f dB (reflectors %s), single-layer %s, oracle %s, naive "
              "warp %s", summary["psnr"], _fmt(summary.get("psnr_mask")),
              _fmt(summary.get("single_psnr")), _fmt(summary.get("oracle_psnr")),

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
 from ..geometry.fusion import FusionOptions
@@ -26,7 +27,7 @@ from ..runner import Stage, StageContext
 log = logging.getLogger("ibr_pipeline.global_mesh")
 
 SFM_FILES = ("sfm/cameras.txt", "sfm/images.txt", "sfm/points3D.txt")
-OUTPUTS = SFM_FILES + ("global/cameras.json", "global/mesh.ply", "global/report.json")
+OUTPUTS = SFM_FILES + (L.REGISTERED_CAMERAS, L.GLOBAL_MESH, L.GLOBAL_REPORT)
 
 
 @dataclass(frozen=True)
@@ -70,13 +71,13 @@ class GlobalMeshConfig(StageConfig):
 
 
 def inputs(ctx: StageContext) -> list[str]:
-    keys = ["scene.json"]
+    keys = [L.SCENE]
     for v in ctx.scene.views:
         keys.append(v.image)
         if v.depth:
             keys.append(v.depth)
-    if ctx.ws.path("input/reflectors.json").is_file():
-        keys.append("input/reflectors.json")
+    if ctx.ws.path(L.USER_REFLECTORS).is_file():
+        keys.append(L.USER_REFLECTORS)
     for r in ctx.scene.reflectors:
         keys += list(r.masks.values())
     return keys
@@ -341,10 +342,10 @@ def run(ctx: StageContext) -> None:
         for f in sorted(Path(tmp).iterdir()):
             with atomic_path(ws.path(f"sfm/{f.name}")) as dst:
                 os.replace(f, dst)
-    ws.write_text("global/cameras.json", cameras_to_json(cams))
-    write_ply(ws.path("global/mesh.ply"), mesh, comment="ibr_pipeline global_mesh")
+    ws.write_text(L.REGISTERED_CAMERAS, cameras_to_json(cams))
+    write_ply(ws.path(L.GLOBAL_MESH), mesh, comment="ibr_pipeline global_mesh")
     report["timings"]["total_s"] = time.perf_counter() - t_start
-    ws.write_json("global/report.json", report)
+    ws.write_json(L.GLOBAL_REPORT, report)
     log.info("global_mesh: %d/%d views registered, %s mesh %d faces, %.1f s", len(registered),
              len(scene.views), dense, len(mesh.faces), report["timings"]["total_s"])
 

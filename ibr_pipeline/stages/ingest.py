@@ -10,10 +10,12 @@ import dataclasses
 import logging
 from dataclasses import dataclass
 
+from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import InputError
 from ..runner import Stage, StageContext
-from ..scene import Scene, input_files, read_input
+from ..io.inputs import input_files, read_input
+from ..scene import Scene
 
 log = logging.getLogger("ibr_pipeline.ingest")
 
@@ -81,4 +83,4 @@ def run(ctx: StageContext) -> None:
 
 STAGE = Stage(name="ingest", help="read the input folder, check every file, write scene.json",
               config=IngestConfig, version="1", run=run, needs_scene=False,
-              inputs=inputs, outputs=("scene.json",))
+              inputs=inputs, outputs=(L.SCENE,))

@@ -14,15 +14,14 @@ import json
 import logging
 from dataclasses import dataclass
 
+from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import InputError
 from ..geometry.decompose import DecomposeOptions
 from ..runner import Stage, StageContext
-from .common import REGISTERED_CAMERAS, registered_cameras, registered_views
+from .common import registered_views
 
 log = logging.getLogger("ibr_pipeline.reflection")
-PLANES = "reflection/planes.json"
-LAYER_FILES = ("I0.png", "I1.png", "beta.npy", "M0.ply", "M1.ply")
 
 
 @dataclass(frozen=True)
@@ -69,25 +68,24 @@ class ReflectionConfig(StageConfig):
 
 # --- declarations -------------------------------------------------------------------------------
 def _user_reflectors_key(ctx) -> list[str]:
-    return ["input/reflectors.json"] if ctx.ws.exists("input/reflectors.json") else []
+    return [L.USER_REFLECTORS] if ctx.ws.exists(L.USER_REFLECTORS) else []
 
 
 def inputs(ctx: StageContext) -> list[str]:
-    keys = [REGISTERED_CAMERAS, "global/mesh.ply"] + _user_reflectors_key(ctx)
+    keys = [L.REGISTERED_CAMERAS, L.GLOBAL_MESH] + _user_reflectors_key(ctx)
     for v in registered_views(ctx):  # neighbours are chosen at run time: every view may be read
-        keys += [ctx.scene.view(v).image, ctx.ws.view_file(v, "depth.npy")]
+        keys += [ctx.scene.view(v).image, ctx.ws.view_file(v, L.DEPTH)]
     return keys
 
 
 def view_inputs(ctx: StageContext, view: str) -> list[str]:
-    return [ctx.ws.view_file(view, "mesh.ply")]
+    return [ctx.ws.view_file(view, L.MESH)]
 
 
 def view_outputs(ctx: StageContext, view: str) -> list[str]:
-    keys = [PLANES, ctx.ws.view_file(view, "layers.json")]
-    p = ctx.ws.path(keys[1])
-    if p.is_file() and json.loads(p.read_text()).get("reflector") is not None:
-        keys += [ctx.ws.view_file(view, f) for f in LAYER_FILES]
+    keys = [L.PLANES, ctx.ws.view_file(view, L.LAYERS)]
+    if L.has_two_layers(ctx.ws, view):
+        keys += [ctx.ws.view_file(view, f) for f in L.TWO_LAYER_FILES]
     return keys
 
 
@@ -106,14 +104,14 @@ class Loader:
         from collections import OrderedDict
 
         from ..io.mesh import read_ply
-        from ..render.raycast import build_scene
+        from ..geometry.raycast import build_scene
 
         self.ctx, self.ws, self.cfg = ctx, ctx.ws, ctx.config
-        self.cams = registered_cameras(ctx.ws)
+        self.cams = L.registered_cameras(ctx.ws)
         self.names = registered_views(ctx)
-        G = read_ply(ctx.ws.path("global/mesh.ply"))
+        G = read_ply(ctx.ws.path(L.GLOBAL_MESH))
         if len(G.faces) == 0:
-            raise InputError(f"{ctx.ws.path('global/mesh.ply')}: global mesh has no triangles")
+            raise InputError(f"{ctx.ws.path(L.GLOBAL_MESH)}: global mesh has no triangles")
         self.G = G
         self.scene = build_scene(G.vertices, G.faces)
         self._raw: dict = {}
@@ -140,7 +138,7 @@ class Loader:
         from ..io.images import read_image
         cam = self.cams[name]
         img = read_image(self.ws.path(self.ctx.scene.view(name).image))
-        dkey = self.ws.view_file(name, "depth.npy")
+        dkey = self.ws.view_file(name, L.DEPTH)
         try:
             depth = np.load(self.ws.path(dkey)).astype(np.float64)
         except (OSError, ValueError) as e:
@@ -221,7 +219,7 @@ class Loader:
             return self._full[key]
         import numpy as np
 
-        from ..geometry.decompose import ViewGeom
+        from ..geometry.decompose_terms import ViewGeom
         from ..geometry.planes import depth_points
         _, _, wc, wi, wd = self.raw(name)
         fp = self.footprint(name, refl)
@@ -248,7 +246,7 @@ class Footprint:
 def _fingerprint(ctx) -> str:
     from ..runner import file_sha256
     h = hashlib.sha256()
-    for key in [REGISTERED_CAMERAS, "global/mesh.ply"] + _user_reflectors_key(ctx):
+    for key in [L.REGISTERED_CAMERAS, L.GLOBAL_MESH] + _user_reflectors_key(ctx):
         h.update(key.encode() + file_sha256(ctx.ws.path(key)).encode())
     cfg = ctx.config
     h.update(json.dumps([cfg.use_user_reflectors, detect_enabled(ctx), cfg.detect_min_pairs,
@@ -258,7 +256,7 @@ def _fingerprint(ctx) -> str:
                          cfg.min_mask_pixels]).encode())
     if detect_enabled(ctx):
         for v in registered_views(ctx):
-            h.update(file_sha256(ctx.ws.path(ctx.ws.view_file(v, "depth.npy"))).encode())
+            h.update(file_sha256(ctx.ws.path(ctx.ws.view_file(v, L.DEPTH))).encode())
     return h.hexdigest()[:16]
 
 
@@ -266,7 +264,7 @@ def detect_enabled(ctx) -> bool:
     """`detect`: 'on' / 'off', or 'auto' = detect only when no user reflectors are used."""
     mode = ctx.config.detect
     if mode == "auto":
-        return not (ctx.config.use_user_reflectors and ctx.ws.exists("input/reflectors.json"))
+        return not (ctx.config.use_user_reflectors and ctx.ws.exists(L.USER_REFLECTORS))
     return mode == "on"
 
 
@@ -287,9 +285,9 @@ def compute_planes(ctx, loader: Loader) -> dict:
     from ..geometry.reflector_detect import is_reflective, reflectance_cue, score_candidate
     cfg = ctx.config
     user = []
-    if cfg.use_user_reflectors and ctx.ws.exists("input/reflectors.json"):
+    if cfg.use_user_reflectors and ctx.ws.exists(L.USER_REFLECTORS):
         from ..scene import read_reflectors
-        for r in read_reflectors(ctx.ws.path("input/reflectors.json")):
+        for r in read_reflectors(ctx.ws.path(L.USER_REFLECTORS)):
             d = r.to_dict()
             d["masks"] = {v: f"input/{k}" for v, k in r.masks.items()}
             d["source"] = "user"
@@ -340,7 +338,7 @@ def compute_planes(ctx, loader: Loader) -> dict:
 def get_planes(ctx, loader: Loader) -> dict:
     import fcntl
     fp = _fingerprint(ctx)
-    path = ctx.ws.path(PLANES)
+    path = ctx.ws.path(L.PLANES)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path.parent / ".planes.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
@@ -352,7 +350,7 @@ def get_planes(ctx, loader: Loader) -> dict:
             except json.JSONDecodeError:
                 pass
         d = compute_planes(ctx, loader)
-        ctx.ws.write_json(PLANES, d)
+        ctx.ws.write_json(L.PLANES, d)
         return d
 
 
@@ -424,7 +422,7 @@ def _loader(ctx) -> Loader:
     """One Loader per worker process and (workspace, config, inputs): a worker that runs several
     views reuses the masks / mirror points / images of the others instead of recomputing them."""
     stamps = tuple((p.stat().st_mtime_ns, p.stat().st_size) for p in
-                   (ctx.ws.path(ctx.ws.view_file(v, "depth.npy")) for v in registered_views(ctx))
+                   (ctx.ws.path(ctx.ws.view_file(v, L.DEPTH)) for v in registered_views(ctx))
                    if p.is_file())
     key = (str(ctx.ws.root), ctx.config.digest(), _fingerprint(ctx), stamps)
     if key not in _LOADERS:
@@ -461,7 +459,7 @@ def run(ctx: StageContext, view: str) -> None:
         {k: v for k, v in r.items() if k in ("name", "discarded", "neighbours", "mask_pixels")}
         for r in skipped], "work_size": [wc.width, wc.height]}
     if not results:
-        ws.write_json(ws.view_file(view, "layers.json"), report)
+        ws.write_json(ws.view_file(view, L.LAYERS), report)
         return
     # combine the reflectors of this view: beta (reflectance), R = beta I1, M1 pieces
     beta_w = np.zeros((wc.height, wc.width))
@@ -489,27 +487,27 @@ def run(ctx: StageContext, view: str) -> None:
     R = np.clip(np.minimum(R, img), 0, None)
     I0 = img - R  # Eq. 3: I = I0 + beta I1
     I1 = np.where(beta[..., None] > 0, R / np.maximum(beta, 1e-6)[..., None], 0.0)
-    write_image(ws.path(ws.view_file(view, "I0.png")), np.clip(I0, 0, 1))
-    write_image(ws.path(ws.view_file(view, "I1.png")), np.clip(I1, 0, 1))
-    with ws.atomic_write(ws.view_file(view, "beta.npy")) as f:
+    write_image(ws.path(ws.view_file(view, L.I0)), np.clip(I0, 0, 1))
+    write_image(ws.path(ws.view_file(view, L.I1)), np.clip(I1, 0, 1))
+    with ws.atomic_write(ws.view_file(view, L.BETA)) as f:
         np.save(f, beta.astype(np.float32))
-    M0 = read_ply(ws.path(ws.view_file(view, "mesh.ply")))  # M0: the refined-depth surface mesh
+    M0 = read_ply(ws.path(ws.view_file(view, L.MESH)))  # M0: the refined-depth surface mesh
     m0_off = [r["m0_offset"] for r in results if r.get("m0_offset") is not None]
     if m0_off:  # M0's optimised vertex offsets (Eq. 7); masks are disjoint, others are 0
         m0v = optimised_m0(M0.vertices, wc, np.sum(m0_off, axis=0))
-        write_ply(ws.path(ws.view_file(view, "M0.ply")), Mesh(m0v, M0.faces),
+        write_ply(ws.path(ws.view_file(view, L.M0)), Mesh(m0v, M0.faces),
                   comment="view mesh with optimised vertex offsets")
     else:
-        write_ply(ws.path(ws.view_file(view, "M0.ply")),
+        write_ply(ws.path(ws.view_file(view, L.M0)),
                   Mesh(M0.vertices, M0.faces, normals=M0.normals))
-    write_ply(ws.path(ws.view_file(view, "M1.ply")),
+    write_ply(ws.path(ws.view_file(view, L.M1)),
               Mesh(np.concatenate(verts), np.concatenate(faces)), comment="mirror-world geometry")
     main = max(results, key=lambda r: r["mask_pixels"])
     report["reflector"] = main["name"]
     report["reflectors"] = [{k: v for k, v in r.items() if k not in ("R", "mask", "geom",
                                                                       "m1_offset", "m0_offset")}
                             for r in results]
-    ws.write_json(ws.view_file(view, "layers.json"), report)
+    ws.write_json(ws.view_file(view, L.LAYERS), report)
 
 
 STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",

@@ -13,19 +13,17 @@ Single-layer rendering is used throughout when `reflection` has not run.
 """
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 
+from .. import layout as L
 from ..config import StageConfig, param
 from ..render.ibr import RenderSettings
 from ..runner import Stage, StageContext
-from .common import REGISTERED_CAMERAS, registered_views
+from .common import registered_views
 
 log = logging.getLogger("ibr_pipeline.render_views")
 
-TEST_CAMERAS = "input/gt/test_cameras.json"
-FLY_CAMERAS = "input/gt/flythrough_cameras.json"
 
 
 @dataclass(frozen=True)
@@ -48,15 +46,14 @@ def render_sets(ctx: StageContext) -> dict[str, dict]:
     """{set: {"cameras": [(name, Camera)], "exclude": [names or None], "source": str}} — a pure
     function of the workspace and config, shared by the inputs/outputs declarations and run()."""
     from ..render.video import interpolate_path
-    from .common import registered_cameras
     cfg = ctx.config
-    cams = registered_cameras(ctx.ws)
+    cams = L.registered_cameras(ctx.ws)
     names = [n for n in ctx.scene.names if n in cams]
     loo = {"cameras": [(n, cams[n]) for n in names], "exclude": names, "source": "leave_one_out"}
-    test = _cameras(ctx, TEST_CAMERAS)
+    test = _cameras(ctx, L.TEST_CAMERAS)
     sets = {"test": {"cameras": list(test.items()), "exclude": [None] * len(test),
                      "source": "heldout"} if test else dict(loo)}
-    fly = _cameras(ctx, FLY_CAMERAS)
+    fly = _cameras(ctx, L.FLY_CAMERAS)
     if fly:
         fly_list, src = list(fly.items()), "flythrough"
     else:
@@ -74,39 +71,23 @@ def render_sets(ctx: StageContext) -> dict[str, dict]:
     return sets
 
 
-def _view_files(ctx: StageContext, view: str) -> list[str]:
-    ws = ctx.ws
-    vdir = ws.view_dir(view)
-    keys = [f"{vdir}/mesh.ply", f"{vdir}/edges.png", ctx.scene.view(view).image]
-    lj = ws.path(f"{vdir}/layers.json")
-    if lj.is_file():
-        keys.append(f"{vdir}/layers.json")
-        try:
-            two = json.loads(lj.read_text()).get("reflector") is not None
-        except (OSError, json.JSONDecodeError):
-            two = False
-        if two:
-            keys += [f"{vdir}/{f}" for f in ("I0.png", "I1.png", "beta.npy", "M0.ply", "M1.ply")]
-    return keys
-
-
 def inputs(ctx: StageContext) -> list[str]:
-    keys = [REGISTERED_CAMERAS]
-    if not ctx.ws.path(REGISTERED_CAMERAS).is_file():
+    keys = [L.REGISTERED_CAMERAS]
+    if not ctx.ws.path(L.REGISTERED_CAMERAS).is_file():
         return keys
     for v in registered_views(ctx):
-        keys += _view_files(ctx, v)
-    keys += [k for k in (TEST_CAMERAS, FLY_CAMERAS) if ctx.ws.path(k).is_file()]
+        keys += [ctx.scene.view(v).image] + L.renderer_files(ctx.ws, v)
+    keys += [k for k in (L.TEST_CAMERAS, L.FLY_CAMERAS) if ctx.ws.path(k).is_file()]
     return keys
 
 
 def outputs(ctx: StageContext) -> list[str]:
-    if not ctx.ws.path(REGISTERED_CAMERAS).is_file():
+    if not ctx.ws.path(L.REGISTERED_CAMERAS).is_file():
         return []
     out = []
     for s, spec in render_sets(ctx).items():
-        out += [f"renders/{s}/{i:04d}.png" for i in range(len(spec["cameras"]))]
-        out += [f"renders/{s}/timings.json", f"renders/{s}/cameras.json"]
+        out += [L.render_file(s, f"{i:04d}.png") for i in range(len(spec["cameras"]))]
+        out += [L.render_file(s, "timings.json"), L.render_file(s, "cameras.json")]
     return out
 
 
@@ -139,17 +120,17 @@ def run(ctx: StageContext) -> None:
             f = model.render(cam, exclude=() if excl is None else (excl,),
                              previous=prev if sequential else None)
             prev = f
-            write_image(ws.path(f"renders/{s}/{i:04d}.png"), f.color)
+            write_image(ws.path(L.render_file(s, f"{i:04d}.png")), f.color)
             frames.append({"index": i, "name": name, "ms": round(f.ms, 3),
                            **{k: round(v, 3) for k, v in f.timings.items()},
                            "selected": f.selected, "holes": round(float(1 - f.covered.mean()), 5)})
         ms = [f["ms"] for f in frames]
-        ws.write_json(f"renders/{s}/timings.json", {
+        ws.write_json(L.render_file(s, "timings.json"), {
             "set": s, "source": spec["source"], "layers": bool(spec.get("layers", True)) and two > 0,
             "size": list(spec["cameras"][0][1].size) if frames else None,
             "renderer": renderer_name(), "median_ms": float(np.median(ms)) if ms else None,
             "frames": frames})
-        ws.write_text(f"renders/{s}/cameras.json", cameras_to_json(dict(spec["cameras"])))
+        ws.write_text(L.render_file(s, "cameras.json"), cameras_to_json(dict(spec["cameras"])))
         log.info("render_views: %-12s %3d frames, median %.1f ms/frame", s, len(frames),
                  float(np.median(ms)) if ms else float("nan"))
     for m in models.values():

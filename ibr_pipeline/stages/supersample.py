@@ -19,16 +19,15 @@ import logging
 import time
 from dataclasses import dataclass
 
+from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
 from ..nn.options import TrainOptions
 from ..runner import Stage, StageContext
-from .common import REGISTERED_CAMERAS, registered_cameras, registered_views
+from .common import registered_views
 
 log = logging.getLogger("ibr_pipeline.supersample")
 
-MODEL, TRAIN_JSON, LOSS_PNG = "nn/dsrnet.pt", "nn/train.json", "nn/loss.png"
-CHECKPOINT, CACHE = "nn/checkpoint.pt", "nn/cache"
 
 
 @dataclass(frozen=True)
@@ -60,20 +59,16 @@ class SupersampleConfig(StageConfig):
 
 
 def inputs(ctx: StageContext) -> list[str]:
-    keys = [REGISTERED_CAMERAS]
-    if not ctx.ws.exists(REGISTERED_CAMERAS):
+    keys = [L.REGISTERED_CAMERAS]
+    if not ctx.ws.exists(L.REGISTERED_CAMERAS):
         return keys
     views = registered_views(ctx)
     keys += [ctx.scene.view(v).image for v in views]
-    if ctx.config.renderer == "ibr":  # what render.ibr.IBRModel reads (render_views, #7)
+    if ctx.config.renderer == "ibr":  # what the render_views renderer reads
         for v in views:
-            keys += [ctx.ws.view_file(v, "edges.png"), ctx.ws.view_file(v, "mesh.ply")]
-            # two-layer files only where `reflection` wrote them (single layer otherwise)
-            keys += [k for k in (ctx.ws.view_file(v, f) for f in
-                                 ("layers.json", "M0.ply", "M1.ply", "I0.png", "I1.png", "beta.npy"))
-                     if ctx.ws.exists(k)]
+            keys += L.renderer_files(ctx.ws, v)
     else:
-        keys += ["input/cameras.json"]
+        keys += [L.INPUT_CAMERAS]
     return keys
 
 
@@ -86,12 +81,13 @@ def run(ctx: StageContext) -> None:
     from ..nn.data import (IBRRenderer, StandInRenderer, capture_pairs, make_sample,
                            nearest_views, render_low_res, sequence_pairs, split_views)
     from ..nn.model import count_parameters, preset
-    from ..nn.train import cpu_threads, evaluate, plot_losses, save_model, train
+    from ..nn.model import cpu_threads, save_model
+    from ..nn.train import evaluate, plot_losses, train
     from ..workspace import atomic_path
 
     t_start = time.perf_counter()
     ws, cfg = ctx.ws, ctx.config
-    cams = registered_cameras(ws)
+    cams = L.registered_cameras(ws)
     names = registered_views(ctx)
     tcfg = cfg.train
     if tcfg.vgg_weights and not ws.path(tcfg.vgg_weights).is_file():
@@ -106,7 +102,7 @@ def run(ctx: StageContext) -> None:
         renderer = IBRRenderer(ws)
 
     digest = ctx.fingerprint   # renders and checkpoint belong to this run's inputs and config
-    cache_dir = ws.path(CACHE)
+    cache_dir = ws.path(L.CACHE)
     meta = cache_dir / "meta.json"
     if meta.is_file() and json.loads(meta.read_text()).get("digest") != digest:
         shutil.rmtree(cache_dir, ignore_errors=True)  # a killed run with other inputs
@@ -116,7 +112,7 @@ def run(ctx: StageContext) -> None:
 
     def cache_as(suffix=""):
         def cache(name, compute):
-            from ..workspace import view_key
+            from ..layout import view_key
             f = cache_dir / f"{view_key(name)}{suffix}.npz"
             if f.is_file():
                 with np.load(f) as z:
@@ -161,14 +157,14 @@ def run(ctx: StageContext) -> None:
         budget = max(1e-3, cfg.time_budget_s - (time.perf_counter() - t_start) - reserve)
     opts = dataclasses.replace(tcfg, progress=show, vgg_weights=(str(ws.path(tcfg.vgg_weights))
                                                                  if tcfg.vgg_weights else ""))
-    result = train(model_cfg, train_samples, val_samples, opts, ws.path(CHECKPOINT), digest,
+    result = train(model_cfg, train_samples, val_samples, opts, ws.path(L.CHECKPOINT), digest,
                    capture_samples=capture_samples, time_budget_s=budget)
     device = next(result.model.parameters()).device
     val = evaluate(result.model, val_samples, device)
-    save_model(ws.path(MODEL), result.model, {"trained_steps": result.steps})
+    save_model(ws.path(L.MODEL), result.model, {"trained_steps": result.steps})
     horizon = int(result.history.get("horizon", tcfg.steps))
     fitted = horizon < tcfg.steps
-    plot_losses(result.history, ws.path(LOSS_PNG),
+    plot_losses(result.history, ws.path(L.LOSS_PNG),
                 f"DSRNet ({cfg.preset}, {'MVR' if cfg.use_mvr else 'no MVR'}), {result.steps} steps"
                 + (f" (of {tcfg.steps}: fitted to the time budget)" if fitted else ""),
                 "1 − SSIM + w·filters" + (" + L1" if tcfg.l1_weight > 0 else "")
@@ -200,11 +196,11 @@ def run(ctx: StageContext) -> None:
         log.info("supersample: %d steps in %.0f s; held-out PSNR %.2f dB (bilinear %.2f, bicubic "
                  "%.2f)", result.steps, result.seconds, val["psnr"], val["psnr_bilinear"],
                  val["psnr_bicubic"])
-    ws.write_json(TRAIN_JSON, report)
-    ws.path(CHECKPOINT).unlink(missing_ok=True)
+    ws.write_json(L.TRAIN_JSON, report)
+    ws.path(L.CHECKPOINT).unlink(missing_ok=True)
     shutil.rmtree(cache_dir, ignore_errors=True)
 
 
 STAGE = Stage(name="supersample", help="train DSRNet (Xu §5.2) on leave-one-out renders",
               config=SupersampleConfig, version="4", run=run, inputs=inputs,
-              outputs=(MODEL, TRAIN_JSON, LOSS_PNG))
+              outputs=(L.MODEL, L.TRAIN_JSON, L.LOSS_PNG))

@@ -13,9 +13,10 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
+from .. import layout as L
 from ..config import StageConfig, param
 from ..runner import Stage, StageContext
-from .common import REGISTERED_CAMERAS, registered_cameras, registered_views
+from .common import registered_views
 
 OUTPUTS = ("depth_init.npy", "depth.npy", "normal.npy", "edges.png", "mask.png", "depth_report.json")
 
@@ -113,7 +114,7 @@ def _sources(ctx: StageContext, view: str) -> list[str]:
     from ..geometry.mvs import select_sources
     if not ctx.config.mvs:
         return []
-    cams = registered_cameras(ctx.ws)
+    cams = L.registered_cameras(ctx.ws)
     return select_sources(cams[view], cams, k=ctx.config.sources, exclude=(view,))
 
 
@@ -152,7 +153,7 @@ def _g_voxel(ws) -> float:
     2 cm when G is in SfM units (no depth, no scale), where the voxel is no length in metres."""
     import json
     try:
-        rep = json.loads(ws.path("global/report.json").read_text())
+        rep = json.loads(ws.path(L.GLOBAL_REPORT).read_text())
         if rep.get("units") == "sfm":
             return G_VOXEL_TUNED
         v = rep["voxel_size"]["value"]
@@ -185,7 +186,7 @@ def _global_scene(path):
 
     from ..errors import InputError
     from ..io.mesh import read_ply
-    from ..render.raycast import build_scene
+    from ..geometry.raycast import build_scene
 
     st = os.stat(path)
     key = (str(path), st.st_size, st.st_mtime_ns)
@@ -207,7 +208,7 @@ _DEPTH_CACHE_SIZE = 12   # a view's MVS sources are its neighbours in the captur
 def _g_depth(scene, camera):
     """G ray cast into `camera` (render_depth), cached per worker process for the current G: a
     view renders G into itself and into its MVS sources, and neighbouring views share sources."""
-    from ..render.raycast import render_depth
+    from ..geometry.raycast import render_depth
 
     key = (id(scene), camera.width, camera.height, camera.K.tobytes(), camera.R.tobytes(),
            camera.t.tobytes())
@@ -246,13 +247,13 @@ def _run(ctx: StageContext, view: str) -> None:
 
     t0, c0 = time.perf_counter(), time.process_time()
     ws, cfg = ctx.ws, ctx.config
-    cams = registered_cameras(ws)
+    cams = L.registered_cameras(ws)
     cam = cams[view]
     image = read_image(ws.path(ctx.scene.view(view).image))
     if image.shape[:2] != (cam.height, cam.width):
         raise InputError(f"{ws.path(ctx.scene.view(view).image)}: image is {image.shape[1]}x"
                          f"{image.shape[0]}, its camera says {cam.width}x{cam.height}")
-    mesh, scene = _global_scene(ws.path("global/mesh.ply"))
+    mesh, scene = _global_scene(ws.path(L.GLOBAL_MESH))
     strokes = None
     if ws.exists(_strokes_key(ctx, view)):
         s = read_image(ws.path(_strokes_key(ctx, view)))
@@ -341,16 +342,16 @@ def _run(ctx: StageContext, view: str) -> None:
     final = dr.detect(depth2, cam, cfg.lambda_rel, with_mask=False)  # edges.png: Eq. 1 on the result
     normal_w = world_normals(final.normals, cam).astype(np.float32)   # = normals_from_depth(depth2)
     vd = ws.view_dir(view)
-    with ws.atomic_write(f"{vd}/depth_init.npy") as f:
+    with ws.atomic_write(f"{vd}/{L.DEPTH_INIT}") as f:
         np.save(f, depth0.astype(np.float32))
-    with ws.atomic_write(f"{vd}/depth.npy") as f:
+    with ws.atomic_write(f"{vd}/{L.DEPTH}") as f:
         np.save(f, depth2.astype(np.float32))
-    with ws.atomic_write(f"{vd}/normal.npy") as f:
+    with ws.atomic_write(f"{vd}/{L.NORMAL}") as f:
         np.save(f, normal_w)
-    write_image(ws.path(f"{vd}/edges.png"), (final.edge_pixels * 255).astype(np.uint8))
-    write_image(ws.path(f"{vd}/mask.png"), (mask * 255).astype(np.uint8))
+    write_image(ws.path(f"{vd}/{L.EDGES}"), (final.edge_pixels * 255).astype(np.uint8))
+    write_image(ws.path(f"{vd}/{L.REFINE_MASK}"), (mask * 255).astype(np.uint8))
     ms = 1000 * (time.perf_counter() - t0)
-    ws.write_json(f"{vd}/depth_report.json", {
+    ws.write_json(f"{vd}/{L.DEPTH_REPORT}", {
         "view": view, "size": [cam.width, cam.height], "pixel_scale": px,
         "ramp_scale": rs,
         "edge_pixels_init": int(det.edge_pixels.sum()), "edge_pixels": int(final.edge_pixels.sum()),
@@ -364,5 +365,5 @@ def _run(ctx: StageContext, view: str) -> None:
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
               config=ViewDepthConfig, version="6", run=run, per_view=True,
-              inputs=(REGISTERED_CAMERAS, "global/mesh.ply"), view_inputs=view_inputs,
+              inputs=(L.REGISTERED_CAMERAS, L.GLOBAL_MESH), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)

@@ -1,7 +1,7 @@
 """Stage `view_mesh` (Xu et al. §4.2.3), per view: the refined depth as a pixel-grid mesh (two
 triangles per pixel square, cut along Eq. 1 occlusion edges), quadric-simplified with
 fast-simplification (border preserved, so the cuts survive) to no more vertices than the view needs;
-version 3 first merges planar blocks of pixel squares (geometry/quadtree_mesh.py), ~5x less input.
+version 3 first merges planar blocks of pixel squares (geometry/grid_faces.py), ~5x less input.
 Mathematics: geometry/grid_mesh.py.
 """
 from __future__ import annotations
@@ -9,9 +9,10 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+from .. import layout as L
 from ..config import StageConfig, param
 from ..runner import Stage, StageContext
-from .common import REGISTERED_CAMERAS, registered_cameras, registered_views
+from .common import registered_views
 
 
 @dataclass(frozen=True)
@@ -27,7 +28,7 @@ class ViewMeshConfig(StageConfig):
     lambda_rel: float = param(0.01, "Eq. 1 threshold for the cuts (Xu §4.2.1: 0.01)", min=1e-4, max=0.5)
     agg: float = param(7.0, "fast-simplification aggressiveness", min=0.0, max=10.0)
     premerge_tol: float = param(1e-3, "planar pre-merge before the simplification (ours, "
-                                "geometry/quadtree_mesh.py): blocks of pixel squares whose depth is "
+                                "geometry/grid_faces.py): blocks of pixel squares whose depth is "
                                 "planar within this relative deviation (1e-3: a tenth of Eq. 1's "
                                 "lambda) become a few triangles; 0 = the paper's full pixel grid",
                                 min=0.0, max=0.01)
@@ -45,16 +46,16 @@ def run(ctx: StageContext, view: str) -> None:
 
     t0, c0 = time.perf_counter(), time.process_time()
     ws, cfg = ctx.ws, ctx.config
-    cam = registered_cameras(ws)[view]
+    cam = L.registered_cameras(ws)[view]
     vd = ws.view_dir(view)
-    p = ws.path(f"{vd}/depth.npy")
+    p = ws.path(f"{vd}/{L.DEPTH}")
     try:
         depth = np.load(p).astype(np.float64)
     except (OSError, ValueError) as e:
         raise InputError(f"{p}: cannot read depth ({e})") from None
     if depth.shape != (cam.height, cam.width) or not np.all(np.isfinite(depth)):
         raise InputError(f"{p}: depth must be finite {cam.height}x{cam.width}, got {depth.shape}")
-    edges_png = read_image(ws.path(f"{vd}/edges.png"))
+    edges_png = read_image(ws.path(f"{vd}/{L.EDGES}"))
     if edges_png.shape[:2] != depth.shape:
         raise InputError(f"{ws.path(f'{vd}/edges.png')}: size differs from depth.npy")
     P = points_from_depth(depth, cam.K)
@@ -67,8 +68,8 @@ def run(ctx: StageContext, view: str) -> None:
     budget = max(cfg.min_vertices, int(round(cfg.max_vertices_640x480 * cam.width * cam.height / (640 * 480))))
     res = simplify_adaptive(v, f, cam, depth, budget, cfg.min_vertices, cfg.tol_score, cfg.agg,
                             mesh_depth=grid_depth)
-    write_ply(ws.path(f"{vd}/mesh.ply"), Mesh(res.vertices, res.faces), comment=f"view_mesh {view}")
-    ws.write_json(f"{vd}/mesh_report.json", {
+    write_ply(ws.path(f"{vd}/{L.MESH}"), Mesh(res.vertices, res.faces), comment=f"view_mesh {view}")
+    ws.write_json(f"{vd}/{L.MESH_REPORT}", {
         "view": view, "edge_pixels": int((edges_png.mean(axis=2) > 0.5).sum()),
         "grid_faces": premerge["grid_faces"],
         "input_vertices": res.grid_vertices, "input_faces": res.grid_faces,  # after the pre-merge
@@ -79,7 +80,7 @@ def run(ctx: StageContext, view: str) -> None:
 
 STAGE = Stage(name="view_mesh", help="quadric-simplified per-view meshes cut along occlusion edges",
               config=ViewMeshConfig, version="4", run=run, per_view=True,
-              inputs=(REGISTERED_CAMERAS,),
-              view_inputs=("{view_dir}/depth.npy", "{view_dir}/edges.png"),
-              view_outputs=("{view_dir}/mesh.ply", "{view_dir}/mesh_report.json"),
+              inputs=(L.REGISTERED_CAMERAS,),
+              view_inputs=("{view_dir}/" + L.DEPTH, "{view_dir}/" + L.EDGES),
+              view_outputs=("{view_dir}/" + L.MESH, "{view_dir}/" + L.MESH_REPORT),
               views=registered_views)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..render import raycast
+from ..geometry import raycast
 from ..scene import Camera
 from .materials import (FRESNEL_NONE, fresnel_dielectric,
                         fresnel_pane, reflect, refract)

@@ -7,7 +7,8 @@ import pytest
 from ibr_pipeline.bench.degrade import degrade_input
 from ibr_pipeline.errors import InputError
 from ibr_pipeline.io.images import read_depth_png, read_image
-from ibr_pipeline.scene import cameras_from_json, read_input
+from ibr_pipeline.io.inputs import read_input
+from ibr_pipeline.scene import cameras_from_json
 
 
 def _angle_deg(Ra, Rb):

@@ -11,7 +11,7 @@ from ibr_pipeline.cli import main
 from ibr_pipeline.geometry.fusion import mirror_world_points
 from ibr_pipeline.geometry.mesh_metrics import fscore, observed_points
 from ibr_pipeline.io.mesh import read_ply
-from ibr_pipeline.scene import read_input
+from ibr_pipeline.io.inputs import read_input
 
 
 def _evaluate(ws: Path, scene_dir: Path):

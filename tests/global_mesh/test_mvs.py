@@ -4,7 +4,7 @@ import pytest
 
 from ibr_pipeline.geometry.mvs import geometric_consistency, plane_sweep, select_sources
 from ibr_pipeline.io.images import read_image
-from ibr_pipeline.scene import read_input
+from ibr_pipeline.io.inputs import read_input
 
 MIRROR = 23  # material index of the mirror in gt/scene.json (mirror_room)
 

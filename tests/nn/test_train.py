@@ -11,7 +11,8 @@ import torch
 
 from helpers import standin_samples
 from ibr_pipeline.nn.model import DSRNetConfig
-from ibr_pipeline.nn.train import TrainOptions, evaluate, load_model, plot_losses, save_model, train
+from ibr_pipeline.nn.model import load_model, save_model
+from ibr_pipeline.nn.train import TrainOptions, evaluate, plot_losses, train
 
 SMALL = DSRNetConfig(feature_channels=(8, 8, 4), mvr_channels=(8, 8), reweight_channels=(8, 8),
                      unet_channels=(8, 12))

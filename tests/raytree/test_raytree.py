@@ -14,7 +14,8 @@ from ibr_pipeline.raytree.decode import DecodeOptions, decode
 from ibr_pipeline.raytree.encoding import (RayTree, read_pair_target, read_tree,
                                            transmitted_bits, write_tree)
 from ibr_pipeline.raytree.fill import push_pull
-from ibr_pipeline.raytree.scenarios import make_case, moved_camera
+from ibr_pipeline.scene import moved_camera
+from ibr_pipeline.synthetic.raytree_cases import make_case
 from ibr_pipeline.raytree.specular import brute_force_search, specular_directions
 from ibr_pipeline.raytree.warp import WarpOptions, naive_warp, warp, warp_decoded
 

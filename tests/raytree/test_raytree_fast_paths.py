@@ -133,7 +133,7 @@ def test_sampler_slack_loosens_depth_test():
 
 def test_diffuse_flow_values_equal_sampling_at_taps(tiny_scene):
     from ibr_pipeline.raytree.diffuse import diffuse_flow, projection_matrix
-    from ibr_pipeline.raytree.scenarios import moved_camera
+    from ibr_pipeline.scene import moved_camera
     folder, _, _ = tiny_scene
     tree = read_tree(folder / "gt" / "raytree" / "pair_00.npz")
     dec = decode(tree)

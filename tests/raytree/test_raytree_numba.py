@@ -25,7 +25,7 @@ from ibr_pipeline.raytree import ops
 from ibr_pipeline.raytree.backend import resolve
 from ibr_pipeline.raytree.decode import decode
 from ibr_pipeline.raytree.fill import push_pull
-from ibr_pipeline.raytree.scenarios import make_case
+from ibr_pipeline.synthetic.raytree_cases import make_case
 from ibr_pipeline.raytree.specular import SpecularOptions
 from ibr_pipeline.raytree.warp import WarpOptions, naive_warp, warp, warp_decoded
 

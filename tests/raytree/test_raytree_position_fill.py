@@ -8,7 +8,7 @@ import torch
 
 from ibr_pipeline.metrics import psnr
 from ibr_pipeline.raytree.decode import decode
-from ibr_pipeline.raytree.scenarios import make_case
+from ibr_pipeline.synthetic.raytree_cases import make_case
 from ibr_pipeline.raytree.specular import SpecularOptions, position_fill
 from ibr_pipeline.raytree.warp import WarpOptions, warp_decoded
 

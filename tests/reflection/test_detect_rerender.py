@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ibr_pipeline.geometry.decompose import ViewGeom
+from ibr_pipeline.geometry.decompose_terms import ViewGeom
 from ibr_pipeline.scene import Camera
 
 W, H = 64, 48

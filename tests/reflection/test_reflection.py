@@ -153,7 +153,7 @@ def test_bad_input_and_config(tiny_ws, tmp_path):
 
 def test_block_pcg_solves_the_normal_equations_with_fixed_variables():
     import scipy.sparse as sp
-    from ibr_pipeline.geometry.decompose import _block_pcg
+    from ibr_pipeline.geometry.block_pcg import _block_pcg
     rng = np.random.default_rng(0)
     A = sp.random(300, 120, density=0.05, random_state=1) + sp.identity(300, format="csr")[:, :120]
     H = (A.T @ A + 0.1 * sp.identity(120)).tocsr()
@@ -174,7 +174,7 @@ def test_mirror_points_skip_a_thick_noisy_reflector():
     """A fused G has thickness at the reflector: M1 must come from the scene behind the camera,
     not from the reflector's own surface (else M1 = M0 and the layers cannot be separated)."""
     from ibr_pipeline.geometry.planes import mirror_points
-    from ibr_pipeline.render.raycast import build_scene
+    from ibr_pipeline.geometry.raycast import build_scene
     from ibr_pipeline.scene import Camera
 
     def quad(x):

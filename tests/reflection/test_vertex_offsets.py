@@ -8,7 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ibr_pipeline.geometry.decompose import DecomposeOptions, ViewGeom, _decompose, project
+from ibr_pipeline.geometry.decompose import DecomposeOptions, _decompose
+
+from ibr_pipeline.geometry.decompose_terms import ViewGeom, project
 from ibr_pipeline.geometry.mesh_laplacian import cotangent_laplacian, grid_control_mesh
 from ibr_pipeline.scene import Camera
 

@@ -1,8 +1,8 @@
 """The naïve diffuse-warp baseline (render/naive.py): sampling, visibility and view order."""
 import numpy as np
 
-from ibr_pipeline.render import raycast
-from ibr_pipeline.geometry.decompose import sample_bilinear
+from ibr_pipeline.geometry import raycast
+from ibr_pipeline.geometry.decompose_terms import sample_bilinear
 from ibr_pipeline.render.naive import NaiveWarp
 from ibr_pipeline.scene import Camera
 

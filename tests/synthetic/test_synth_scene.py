@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from ibr_pipeline.io.images import read_depth_png, read_image
-from ibr_pipeline.scene import cameras_from_json, read_input
+from ibr_pipeline.io.inputs import read_input
+from ibr_pipeline.scene import cameras_from_json
 
 
 def _kinds(root: Path) -> np.ndarray:

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from ibr_pipeline.geometry import depth_edges as de
-from ibr_pipeline.geometry.grid_mesh import depth_error, grid_faces, grid_mesh, render_depth, simplify_adaptive
+from ibr_pipeline.geometry.grid_faces import grid_faces, planar_leaves, quadtree_faces
+from ibr_pipeline.geometry.grid_mesh import depth_error, grid_mesh, render_depth, simplify_adaptive
 from ibr_pipeline.geometry.normals import normals_from_depth, pixel_rays, points_from_depth
-from ibr_pipeline.geometry.quadtree_mesh import planar_leaves, quadtree_faces
 from ibr_pipeline.scene import Camera
 from ibr_pipeline.stages.view_mesh import ViewMeshConfig
 

@@ -12,7 +12,7 @@ from ibr_pipeline.geometry import depth_edges as de
 from ibr_pipeline.geometry import geodesic as geo
 from ibr_pipeline.geometry.grid_mesh import SLIP_OFFSETS, depth_error, grid_mesh, render_depth, simplify_adaptive
 from ibr_pipeline.geometry.normals import normals_from_depth, pixel_rays, points_from_depth
-from ibr_pipeline.render import raycast
+from ibr_pipeline.geometry import raycast
 from ibr_pipeline.scene import Camera
 
 W, H = 80, 60

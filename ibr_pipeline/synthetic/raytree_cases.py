@@ -1,5 +1,5 @@
-"""Synthetic test cases for the ray-tree warper: a ray tree traced at an old camera, the exact
-render at a new camera, and ground-truth masks (for tests and `ibr_pipeline.bench.raytree`).
+"""Synthetic test cases for the ray-tree warper (raytree/): a ray tree traced at an old camera, the
+exact render at a new camera, and ground-truth masks (for tests and the raytree benchmark).
 
 Cases (the issue's "planar mirror, chrome sphere, refractive slab/sphere"):
   mirror   mirror_room: the wall mirror (planar, kr 1)
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scene import Camera
+from ..scene import Camera, moved_camera
 
 # name: (scene, eye, look-at target)
 CASES = {
@@ -37,17 +37,6 @@ class Case:
     gt_render: dict         # the tracer's full output at the new camera
     disoccluded: np.ndarray  # (H, W) new pixels whose first hit the old camera does not see
     specular: np.ndarray    # (H, W) new pixels whose first surface is reflective / refractive
-
-
-def moved_camera(old: Camera, move_cm: float = 5.0, yaw_deg: float = 3.0, up_cm: float = 0.0) -> Camera:
-    """`old` translated move_cm along its x axis (right), up_cm up, and yawed yaw_deg."""
-    a = np.radians(yaw_deg)
-    Ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-    T = old.cam_from_world.copy()
-    T[:3, :3] = Ry @ old.R
-    c = old.center + 0.01 * move_cm * old.R[0] - 0.01 * up_cm * old.R[1]
-    T[:3, 3] = -T[:3, :3] @ c
-    return Camera(old.K, T, old.width, old.height)
 
 
 def disocclusion_mask(tree, new: Camera, new_depth: np.ndarray, rel: float = 0.01,
@@ -97,10 +86,10 @@ def make_case(name: str, width: int = 320, height: int = 240, move_cm: float = 5
     """Trace the case `name` (CASES) at width x height; `supersample` (odd) > 1 renders
     s x s samples per pixel and box-filters radiance (anti-aliased images, as a real renderer
     would deliver) while depth / normals / masks come from the pixel-centre sample."""
-    from ..synthetic.raytree import ray_tree_from_render
-    from ..synthetic.scenes import build_world
-    from ..synthetic.tracer import Tracer
-    from .encoding import from_synthetic
+    from ..raytree.encoding import from_synthetic
+    from .raytree import ray_tree_from_render
+    from .scenes import build_world
+    from .tracer import Tracer
 
     if name not in CASES:
         raise ValueError(f"unknown case {name!r} (choose from {', '.join(CASES)})")

@@ -1,4 +1,10 @@
-"""Planar pre-merge of a cut pixel-grid mesh (view_mesh version 3; our addition to Xu et al. §4.2.3).
+"""The triangles of a depth image's pixel grid, cut at depth edges (Xu et al. §4.2.3), and their
+planar pre-merge (our addition): grid_mesh.py turns these faces into meshes.
+
+`grid_faces`: two triangles per pixel square, none across an Eq. 1 depth edge or a missing depth,
+the square's diagonal chosen so that it does not cross an edge where the other one would not.
+
+`quadtree_faces`, the pre-merge:
 
 Xu et al. simplify the full pixel-grid mesh (two triangles per pixel square) with quadrics. On a
 640x480 view that is ~600 k faces, and fast-simplification's first pass over them was the largest
@@ -31,7 +37,58 @@ import numpy as np
 from numba import njit
 
 from .depth_edges import PairEdges
-from .grid_mesh import CellTriangles
+
+def grid_faces(valid: np.ndarray, edges: PairEdges, cells: np.ndarray | None = None) -> np.ndarray:
+    """(F, 3) int64 faces over the pixel grid (vertex index = y * W + x), two per pixel square,
+    none with a side across a depth edge or a corner without depth. Counter-clockwise as seen by
+    the camera (OpenCV: image y down). `cells`: optional (H-1, W-1) bool, only those squares."""
+    return CellTriangles(valid, edges).faces(cells)
+
+
+class CellTriangles:
+    """The pixel squares' corner indices (a, b, c, d) and the masks of their four possible
+    triangles (a, c, b), (b, c, d) [split along b-c] and (a, c, d), (a, d, b) [split along a-d];
+    computed once for grid_faces, full_cells and the quadtree pre-merge."""
+
+    def __init__(self, valid: np.ndarray, edges: PairEdges):
+        self.corners, self.masks = _cell_triangles(valid, edges)
+
+    def faces(self, cells: np.ndarray | None = None) -> np.ndarray:
+        a, b, c, d = self.corners
+        masks = self.masks if cells is None else [m & cells for m in self.masks]
+        tris = ((a, c, b), (b, c, d), (a, c, d), (a, d, b))
+        faces = [np.stack([t[m] for t in tri], 1) for m, tri in zip(masks, tris)]
+        return np.concatenate(faces, 0).astype(np.int64)
+
+    def full(self) -> np.ndarray:
+        """(H-1, W-1) bool: pixel squares that get both of their triangles (no cut, all depths)."""
+        t1, t2, t3, t4 = self.masks
+        return (t1 & t2) | (t3 & t4)
+
+
+def _cell_triangles(valid: np.ndarray, edges: PairEdges):
+    """Corner indices (a, b, c, d) of every pixel square and the masks of its four possible
+    triangles (a, c, b), (b, c, d) [split along b-c] and (a, c, d), (a, d, b) [split along a-d]."""
+    valid = np.asarray(valid, bool)
+    h, w = valid.shape
+    if edges.right.shape != (h, w - 1) or edges.down.shape != (h - 1, w):
+        raise ValueError(f"edges do not match a {h}x{w} grid")
+    y, x = np.mgrid[0:h - 1, 0:w - 1]
+    a = y * w + x        # (y, x)
+    b = a + 1            # (y, x+1)
+    c = a + w            # (y+1, x)
+    d = c + 1            # (y+1, x+1)
+    va, vb, vc, vd = valid[:-1, :-1], valid[:-1, 1:], valid[1:, :-1], valid[1:, 1:]
+    top, bottom = edges.right[:-1, :], edges.right[1:, :]      # a-b, c-d
+    left, right = edges.down[:, :-1], edges.down[:, 1:]        # a-c, b-d
+    # diagonal b-c (anti) unless it is an edge and a-d (diag) is not
+    use_ad = edges.anti & ~edges.diag
+    t1 = ~use_ad & va & vb & vc & ~top & ~left & ~edges.anti
+    t2 = ~use_ad & vb & vc & vd & ~bottom & ~right & ~edges.anti
+    t3 = use_ad & va & vc & vd & ~left & ~bottom & ~edges.diag
+    t4 = use_ad & va & vd & vb & ~right & ~top & ~edges.diag
+    return (a, b, c, d), (t1, t2, t3, t4)
+
 
 TOL_REL = 1e-4      # max relative depth deviation of a merged block from its plane (0.2 mm at 2 m)
 MAX_BLOCK = 64      # largest block side in pixel squares

@@ -1,0 +1,115 @@
+"""The workspace's file contract: every key a stage writes and a later one reads, named once.
+
+Keys are posix paths relative to the workspace ("global/mesh.ply") or, with the prefix "input/",
+relative to the input folder (workspace.py maps keys to paths). docs/PIPELINE.md says which stage
+writes and which reads each one; a stage module, the renderer and the benchmarks name files only
+through this module.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+
+# --- ingest --------------------------------------------------------------------------------------
+SCENE = "scene.json"                              # the scene manifest
+
+# --- input folder (read, never written) -----------------------------------------------------------
+INPUT = "input/"
+USER_REFLECTORS = "input/reflectors.json"         # user-given mirror planes / masks
+INPUT_CAMERAS = "input/cameras.json"
+TEST_CAMERAS = "input/gt/test_cameras.json"       # synthetic scenes: held-out cameras
+FLY_CAMERAS = "input/gt/flythrough_cameras.json"  # synthetic scenes: a camera path
+
+# --- global_mesh ---------------------------------------------------------------------------------
+SFM_FILES = ("sfm/cameras.txt", "sfm/images.txt", "sfm/points3D.txt")
+REGISTERED_CAMERAS = "global/cameras.json"        # the poses every later stage uses
+GLOBAL_MESH = "global/mesh.ply"                   # G (Xu §4.1)
+GLOBAL_REPORT = "global/report.json"
+
+# --- per view: view_file(view, NAME) -------------------------------------------------------------
+DEPTH_INIT = "depth_init.npy"    # view_depth: G's depth before refinement
+DEPTH = "depth.npy"              # view_depth: refined z-depth
+NORMAL = "normal.npy"            # view_depth: world-space normals of the refined depth
+EDGES = "edges.png"              # view_depth: Eq. 1 depth edges of the refined depth
+REFINE_MASK = "mask.png"         # view_depth: the pixels Eq. 2 refined
+DEPTH_REPORT = "depth_report.json"
+MESH = "mesh.ply"                # view_mesh: the per-view surface mesh (§4.2.3)
+MESH_REPORT = "mesh_report.json"
+LAYERS = "layers.json"           # reflection: which reflector, what was kept / discarded
+I0, I1, BETA = "I0.png", "I1.png", "beta.npy"   # reflection: Eq. 3 layers and reflectance
+M0, M1 = "M0.ply", "M1.ply"      # reflection: surface and mirror-world meshes
+TWO_LAYER_FILES = (I0, I1, BETA, M0, M1)
+
+# --- reflection ----------------------------------------------------------------------------------
+PLANES = "reflection/planes.json"
+
+# --- render_views / evaluate ---------------------------------------------------------------------
+RENDERS = "renders"
+EVAL_METRICS = "eval/metrics.json"
+EVAL_METRICS_PNG = "eval/metrics.png"
+EVAL_ENERGY_PNG = "eval/reflection_energy.png"
+EVAL_FLY_MP4 = "eval/fly.mp4"
+SIDE_BY_SIDE = "eval/side_by_side"
+
+# --- supersample ---------------------------------------------------------------------------------
+MODEL = "nn/dsrnet.pt"
+TRAIN_JSON = "nn/train.json"
+LOSS_PNG = "nn/loss.png"
+CHECKPOINT = "nn/checkpoint.pt"
+CACHE = "nn/cache"
+
+
+def view_key(name: str) -> str:
+    """A path-safe, unique folder name for a view name such as 'sub/dir/0001.png'."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name)
+    if safe == name:
+        return safe
+    return f"{safe}-{hashlib.sha1(name.encode()).hexdigest()[:6]}"
+
+
+def view_dir(view: str) -> str:
+    return f"views/{view_key(view)}"
+
+
+def view_file(view: str, filename: str) -> str:
+    return f"{view_dir(view)}/{filename}"
+
+
+def render_file(render_set: str, filename: str) -> str:
+    """A file of one render set of `render_views` (renders/<set>/0000.png, cameras.json, ...)."""
+    return f"{RENDERS}/{render_set}/{filename}"
+
+
+def has_two_layers(ws, view: str) -> bool:
+    """Whether `reflection` gave the view a reflection layer (layers.json names a reflector)."""
+    p = ws.path(view_file(view, LAYERS))
+    if not p.is_file():
+        return False
+    try:
+        return json.loads(p.read_text()).get("reflector") is not None
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return False
+
+
+def renderer_files(ws, view: str, layers: bool = True) -> list[str]:
+    """The per-view keys the IBR renderer (render/ibr.py) reads, besides the view's image: its
+    mesh and depth edges, and with `layers` the reflection outputs where `reflection` wrote
+    them (a view without a reflector renders single-layer)."""
+    keys = [view_file(view, MESH), view_file(view, EDGES)]
+    if layers and ws.exists(view_file(view, LAYERS)):
+        keys.append(view_file(view, LAYERS))
+        if has_two_layers(ws, view):
+            keys += [view_file(view, f) for f in TWO_LAYER_FILES]
+    return keys
+
+
+def registered_cameras(ws) -> dict:
+    """{view name: Camera} of the views `global_mesh` registered (the poses every later stage
+    uses). Raises InputError when `global_mesh` has not run yet."""
+    from .errors import InputError
+    from .scene import cameras_from_json
+    p = ws.path(REGISTERED_CAMERAS)
+    if not p.is_file():
+        raise InputError(f"{p}: no registered cameras yet (run `ibr global_mesh` first)")
+    return cameras_from_json(p)
