@@ -27,13 +27,14 @@ configs: each stage reads the table [stage] of WS/ibr.toml; `--set stage.field=v
 exit codes: 0 ok, 1 a stage failed, 2 bad input."""
 
 
-# Commands beyond the stages live next to their code. Each module defines `register(sub)`, which
-# adds its subparsers and sets `func` (args -> exit code) on them; it must import nothing heavy at
-# module level, so `ibr --help` stays fast.
+# Commands beyond the stages (ibr_pipeline/commands/): each module's `register(sub)` adds its
+# subparsers with a `func` (args -> exit code) and imports nothing heavy, so `ibr --help` is fast.
 COMMAND_MODULES = (
-    "ibr_pipeline.render.cli",    # ibr render          (issue #7)
-    "ibr_pipeline.raytree.cli",   # ibr warp            (issue #9)
-    "ibr_pipeline.bench.cli",     # ibr bench / report  (issue #10)
+    "ibr_pipeline.commands.synth",    # ibr synth, ibr synth-bench
+    "ibr_pipeline.commands.render",   # ibr render
+    "ibr_pipeline.commands.warp",     # ibr warp
+    "ibr_pipeline.commands.report",   # ibr report
+    "ibr_pipeline.bench.cli",         # ibr bench
 )
 
 
@@ -94,11 +95,6 @@ def build_parser() -> argparse.ArgumentParser:
                            help=f"{hlp} (default: {default})".replace("%", "%%"))  # argparse formats %
         _add_exec_args(p)
 
-    from .synthetic import cli as synth_cli
-    p = sub.add_parser("synth", help="generate a synthetic scene with exact ground truth")
-    synth_cli.add_synth_arguments(p)
-    p = sub.add_parser("synth-bench", help="benchmark synthetic scene generation")
-    synth_cli.add_bench_arguments(p)
     import importlib
     for mod in COMMAND_MODULES:
         importlib.import_module(mod).register(sub)
@@ -222,12 +218,6 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_status(args)
         if args.command == "run":
             return _cmd_run(args, overrides=_parse_overrides(args.overrides))
-        if args.command == "synth":
-            from .synthetic import cli as synth_cli
-            return synth_cli.synth_main(args)
-        if args.command == "synth-bench":
-            from .synthetic import cli as synth_cli
-            return synth_cli.bench_main(args)
         if getattr(args, "func", None) is not None:
             return args.func(args)
         cfg = {k[5:]: v for k, v in vars(args).items() if k.startswith("cfg__") and v is not None}

@@ -5,19 +5,14 @@ setting updates its point. Quality axis: held-out PSNR (dB) from the evaluate st
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 QUALITY = ("psnr", "PSNR on held-out views (dB)")
 
 
 def load(results: Path) -> list[dict]:
-    latest: dict[tuple, dict] = {}
-    for line in results.read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            latest[(r.get("scene"), r.get("setting"))] = r
-    return list(latest.values())
+    from ..report import latest_results
+    return latest_results(results)
 
 
 def quality(r: dict, key: str = "psnr"):

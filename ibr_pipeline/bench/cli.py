@@ -1,4 +1,4 @@
-"""`ibr bench SCENE` and `ibr report WS` (issue #10). Light at import time: work happens in main."""
+"""`ibr bench SCENE`. Light at import time: work happens in main."""
 from __future__ import annotations
 
 import argparse
@@ -30,22 +30,6 @@ def register(sub) -> None:
     p.add_argument("--views", type=int, help="capture views")
     p.add_argument("--jobs", "-j", type=int, default=1, help="worker processes per stage")
     p.set_defaults(func=bench_main)
-
-    p = sub.add_parser("report", help="write a self-contained HTML report (+ Markdown twin) of a "
-                       "workspace: timings, stage reports, metrics, charts, side-by-sides, video")
-    p.add_argument("workspace", type=Path, help="workspace folder")
-    p.add_argument("--out", type=Path, help="output folder (default WS/report)")
-    p.set_defaults(func=report_main)
-
-
-def report_main(args: argparse.Namespace) -> int:
-    import logging
-
-    from .report import write_report
-    path = write_report(args.workspace, args.out)
-    logging.getLogger("ibr_pipeline").info("report: %s (open it in a browser; Markdown twin: %s)",
-                                           path, path.with_name("README.md"))
-    return 0
 
 
 def bench_main(args: argparse.Namespace) -> int:

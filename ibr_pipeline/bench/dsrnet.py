@@ -203,12 +203,12 @@ def flicker(outputs: list, gts: list) -> float:
 def main(argv=None) -> int:
     import torch
 
-    from ..nn.data import (StandInRenderer, capture_pairs, low_res_camera, make_sample,
-                           render_low_res, sequence_pairs, split_views)
+    from ..nn.data import (capture_pairs, low_res_camera, make_sample, render_low_res,
+                           sequence_pairs, split_views)
     from ..nn.infer import SuperSampler
-    from ..nn.model import count_parameters, preset
-    from ..nn.model import cpu_threads, resolve_device, torch_threads
+    from ..nn.model import count_parameters, cpu_threads, preset, resolve_device, torch_threads
     from ..nn.train import TrainOptions, train
+    from ..render.low_res import StandInRenderer
 
     ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.dsrnet", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -252,8 +252,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     if args.workspace:
         from ..io.images import read_image
-        from ..nn.data import IBRRenderer
-        from ..stages.common import registered_cameras
+        from ..render.low_res import IBRRenderer
+        from ..layout import registered_cameras
         from ..workspace import Workspace
         ws = Workspace(args.workspace)
         folder = ws.input_root

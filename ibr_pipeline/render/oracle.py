@@ -1,8 +1,7 @@
 """The oracle representation: per-view two-layer meshes built from a synthetic scene's ground truth.
 
-Used (1) by `evaluate` as the ceiling our reconstruction stages chase (the same renderer on GT depth
-and GT layers), (2) by tests and the benchmark before `view_mesh`/`reflection` exist, and
-(3) by `write_gt_workspace`, which writes those meshes as the files of docs/PIPELINE.md.
+Used by `evaluate` as the ceiling our reconstruction stages chase (the same renderer on GT depth
+and GT layers), and by gt_workspace.py, which writes those meshes as a workspace's files.
 
 Per capture view (docs/SYNTHETIC.md): M0 = grid mesh of gt/geom depth cut at depth jumps; I0, I1,
 beta = gt/I0, gt/I1, gt/beta; M1 = the reflection layer's mirror-world geometry: for every pixel
@@ -12,12 +11,10 @@ gives the virtual point the reflection is seen at.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from .. import layout as L
 from ..errors import InputError
 from ..scene import Camera, cameras_from_json, read_reflectors
 from . import blend
@@ -187,45 +184,3 @@ class GroundTruth:
         views = [self.view(n, layers, step, settings)
                  for n in tqdm(names, desc="oracle views", disable=not progress, leave=False)]
         return IBRModel(views, settings)
-
-
-def write_gt_workspace(input_root: Path, ws_root: Path, layers: bool = True,
-                       step: int = GRID_STEP) -> None:
-    """Write the files of view_mesh (+ reflection when `layers`) and global/cameras.json built from
-    ground truth into a workspace (and run `ingest`), so render_views can run before #5/#6 exist."""
-    from ..io.images import write_image
-    from ..io.mesh import Mesh, write_ply
-    from ..scene import cameras_to_json
-    from ..workspace import Workspace
-
-    input_root, ws_root = Path(input_root).resolve(), Path(ws_root)
-    ws_root.mkdir(parents=True, exist_ok=True)
-    (ws_root / "ibr.toml").write_text(f"[input]\npath = {json.dumps(str(input_root))}\n")
-    ws = Workspace(ws_root)
-    from ..pipeline import load_configs, run
-    from ..stages import STAGES, stage_by_name
-    run(STAGES, ws, load_configs(STAGES, ws), [stage_by_name("ingest")], progress=False)
-    gt = GroundTruth(input_root)
-    ws.write_text(L.REGISTERED_CAMERAS, cameras_to_json(gt.cameras))
-    for name, cam in gt.cameras.items():
-        vdir = ws.view_dir(name)
-        depth = gt.geom(name)["depth"].astype(np.float32)
-        with ws.atomic_write(f"{vdir}/{L.DEPTH}") as f:
-            np.save(f, depth)
-        write_image(ws.path(f"{vdir}/{L.EDGES}"), depth_edges(depth).astype(np.uint8) * 255)
-        v0, f0 = simplified_grid_mesh(cam, depth, step)
-        write_ply(ws.path(f"{vdir}/{L.MESH}"), Mesh(v0, f0))
-        if not layers:
-            continue
-        vd = gt.view(name, True, step)
-        l1 = vd.layers[1]
-        ws.write_json(f"{vdir}/{L.LAYERS}", {"reflector": None if l1 is None else "gt"})
-        if l1 is None:
-            continue
-        l0 = vd.layers[0]
-        write_ply(ws.path(f"{vdir}/{L.M0}"), Mesh(l0.vertices, l0.faces))
-        write_ply(ws.path(f"{vdir}/{L.M1}"), Mesh(l1.vertices, l1.faces))
-        write_image(ws.path(f"{vdir}/{L.I0}"), l0.rgb)
-        write_image(ws.path(f"{vdir}/{L.I1}"), l1.rgb)
-        with ws.atomic_write(f"{vdir}/{L.BETA}") as f:
-            np.save(f, l0.beta.astype(np.float32))

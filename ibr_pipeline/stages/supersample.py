@@ -78,11 +78,11 @@ def run(ctx: StageContext) -> None:
     import numpy as np
 
     from ..io.images import read_image
-    from ..nn.data import (IBRRenderer, StandInRenderer, capture_pairs, make_sample,
-                           nearest_views, render_low_res, sequence_pairs, split_views)
-    from ..nn.model import count_parameters, preset
-    from ..nn.model import cpu_threads, save_model
+    from ..nn.data import (capture_pairs, make_sample, nearest_views, render_low_res,
+                           sequence_pairs, split_views)
+    from ..nn.model import count_parameters, cpu_threads, preset, save_model
     from ..nn.train import evaluate, plot_losses, train
+    from ..render.low_res import IBRRenderer, StandInRenderer
     from ..workspace import atomic_path
 
     t_start = time.perf_counter()

@@ -1,8 +1,8 @@
 """Shared helpers for the DSRNet tests: a stand-in low-res dataset from a synthetic scene."""
 from __future__ import annotations
 
-from ibr_pipeline.nn.data import (StandInRenderer, make_sample, render_low_res, sequence_pairs,
-                                  split_views)
+from ibr_pipeline.nn.data import make_sample, render_low_res, sequence_pairs, split_views
+from ibr_pipeline.render.low_res import StandInRenderer
 
 
 def standin_samples(folder, scale: int = 2, seed: int = 0):

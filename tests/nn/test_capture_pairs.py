@@ -8,10 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from ibr_pipeline.nn.data import (StandInRenderer, capture_low_res, capture_pairs, make_sample,
-                                  render_low_res, sequence_pairs, split_views, to_tensors)
+from ibr_pipeline.nn.data import (capture_low_res, capture_pairs, make_sample, render_low_res,
+                                  sequence_pairs, split_views, to_tensors)
 from ibr_pipeline.nn.model import DSRNetConfig
 from ibr_pipeline.nn.train import TrainOptions, _batch, _lr_at, train
+from ibr_pipeline.render.low_res import StandInRenderer
 
 SMALL = DSRNetConfig(feature_channels=(8, 8, 4), mvr_channels=(8, 8), reweight_channels=(8, 8),
                      unet_channels=(8, 12))

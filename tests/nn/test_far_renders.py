@@ -8,19 +8,20 @@ import torch
 
 from ibr_pipeline.cli import main
 from ibr_pipeline.errors import InputError
-from ibr_pipeline.nn.data import IBRRenderer, low_res_camera, nearest_views
+from ibr_pipeline.gt_workspace import write_gt_workspace
+from ibr_pipeline.nn.data import low_res_camera, nearest_views
 from ibr_pipeline.nn.infer import run_network
 from ibr_pipeline.nn.model import DSRNet, preset
-from ibr_pipeline.render.oracle import write_gt_workspace
+from ibr_pipeline.render.low_res import IBRRenderer
 from ibr_pipeline.scene import Camera
-from ibr_pipeline.stages.common import registered_cameras
+from ibr_pipeline.layout import registered_cameras
 from ibr_pipeline.workspace import Workspace
 
 
 @pytest.fixture(scope="module")
 def gt_ws(tiny_scene, tmp_path_factory):
     ws = tmp_path_factory.mktemp("far") / "ws"
-    write_gt_workspace(tiny_scene[0], ws)
+    write_gt_workspace(tiny_scene[0], ws, "reflection", global_mesh="none")
     return ws
 
 

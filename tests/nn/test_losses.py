@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from ibr_pipeline import metrics
-from ibr_pipeline.nn.losses import (FilterBank, VGGFeatures, _VGG16, image_loss, perceptual, ssim,
+from ibr_pipeline.nn.losses import (_VGG16, FilterBank, VGGFeatures, image_loss, perceptual, ssim,
                                     warp_loss)
 
 

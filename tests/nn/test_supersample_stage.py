@@ -42,7 +42,7 @@ def test_stage_runs_and_sampler_uses_it(ws, tiny_scene):
     assert main(["supersample", str(ws)] + FAST) == 0
     # SuperSampler: API of docs/PIPELINE.md
     from ibr_pipeline.io.images import read_image
-    from ibr_pipeline.nn.data import StandInRenderer
+    from ibr_pipeline.render.low_res import StandInRenderer
     cams = cameras_from_json(tiny_scene[0] / "cameras.json")
     r = StandInRenderer(tiny_scene[0])
     sampler = SuperSampler.load(Workspace(ws), device="cpu")

@@ -8,10 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-
 from helpers import standin_samples
-from ibr_pipeline.nn.model import DSRNetConfig
-from ibr_pipeline.nn.model import load_model, save_model
+
+from ibr_pipeline.nn.model import DSRNetConfig, load_model, save_model
 from ibr_pipeline.nn.train import TrainOptions, evaluate, plot_losses, train
 
 SMALL = DSRNetConfig(feature_channels=(8, 8, 4), mvr_channels=(8, 8), reweight_channels=(8, 8),

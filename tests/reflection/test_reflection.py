@@ -52,11 +52,23 @@ def test_grid_warp_reduces_a_smooth_misalignment():
     assert err < np.abs(shift).mean(), err  # closer to the true flow than the given one
 
 
+def run_stage(ws, overrides: dict | None = None, force: bool = False):
+    from ibr_pipeline.pipeline import load_configs, run, select_stages
+    from ibr_pipeline.stages import STAGES
+    return run(STAGES, ws, load_configs(STAGES, ws, {"reflection": overrides or {}}),
+               select_stages(STAGES, only="reflection"), force=force, progress=False)
+
+
+def read_gt(scene, name):
+    from ibr_pipeline.render.oracle import GroundTruth
+    return GroundTruth(scene).layers(name)
+
+
 @pytest.fixture(scope="module")
 def tiny_ws(tiny_scene, tmp_path_factory):
-    from ibr_pipeline.bench.reflection import make_gt_workspace, run_stage
+    from ibr_pipeline.gt_workspace import write_gt_workspace
     scene = tiny_scene[0]
-    ws = make_gt_workspace(scene, tmp_path_factory.mktemp("refl") / "ws")
+    ws = write_gt_workspace(scene, tmp_path_factory.mktemp("refl") / "ws", "view_mesh", mesh="grid")
     res = run_stage(ws, {"detect": "off"})
     assert res[0].result == "ran", res
     return scene, ws
@@ -64,7 +76,6 @@ def tiny_ws(tiny_scene, tmp_path_factory):
 
 def test_reflector_mask_matches_gt_mirror(tiny_ws):
     from ibr_pipeline.scene import cameras_from_json, read_reflectors
-    from ibr_pipeline.bench.reflection import read_gt
     scene, _ = tiny_ws
     cams = cameras_from_json(scene / "cameras.json")
     mirror = [r for r in read_reflectors(scene / "reflectors.json") if r.name == "mirror"][0]
@@ -79,7 +90,6 @@ def test_reflector_mask_matches_gt_mirror(tiny_ws):
 
 
 def test_stage_layers_against_ground_truth(tiny_ws):
-    from ibr_pipeline.bench.reflection import read_gt
     from ibr_pipeline.io.images import read_image
     from ibr_pipeline.io.mesh import read_ply
     from ibr_pipeline.metrics import psnr
@@ -217,12 +227,17 @@ def test_loader_footprints_and_simplified_m1(tiny_ws):
     """The Loader keeps per-view footprints and rebuilds full ViewGeoms from them (bounded
     memory): the rebuilt M1 points equal the ray-cast mirror points. The stored M1 is the
     quadric-simplified grid: fewer triangles, same depth where it covers the view."""
-    from ibr_pipeline.bench.reflection import _loader
+    from ibr_pipeline.config import build_config
     from ibr_pipeline.geometry.grid_mesh import render_depth
     from ibr_pipeline.geometry.planes import mirror_points
     from ibr_pipeline.io.mesh import read_ply
+    from ibr_pipeline.runner import StageContext
+    from ibr_pipeline.stages.reflection import Loader, ReflectionConfig, get_planes
     _, ws = tiny_ws
-    _, loader = _loader(ws, {"detect": "off"})
+    ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", {"detect": "off"}),
+                       ws.scene())
+    loader = Loader(ctx)
+    loader.reflectors = get_planes(ctx, loader)["reflectors"]
     refl = [r for r in loader.reflectors if r["name"] == "mirror"][0]
     checked = rendered = 0
     for name in loader.names:

@@ -8,13 +8,13 @@ import pytest
 
 from ibr_pipeline.cli import main
 from ibr_pipeline.io.images import read_image
-from ibr_pipeline.render.oracle import write_gt_workspace
+from ibr_pipeline.gt_workspace import write_gt_workspace
 
 
 @pytest.fixture(scope="module")
 def gt_ws(tiny_scene, tmp_path_factory):
     ws = tmp_path_factory.mktemp("render") / "ws"
-    write_gt_workspace(tiny_scene[0], ws)
+    write_gt_workspace(tiny_scene[0], ws, "reflection", global_mesh="none")
     return ws
 
 
@@ -70,7 +70,7 @@ def test_supersample_without_model_exits_2(gt_ws, tmp_path, capsys):
 
 def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, capsys):
     ws = tmp_path / "bad"
-    write_gt_workspace(tiny_scene[0], ws, layers=False)
+    write_gt_workspace(tiny_scene[0], ws, "view_mesh", global_mesh="none")
     (ws / "views" / "0003.png" / "mesh.ply").write_bytes(b"ply\nnot a mesh")
     assert main(["render_views", str(ws), "--no-progress"]) == 2
     err = capsys.readouterr().err
@@ -82,7 +82,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, capsys):
 
 def test_single_layer_workspace_renders(tiny_scene, tmp_path):
     ws = tmp_path / "one"
-    write_gt_workspace(tiny_scene[0], ws, layers=False)
+    write_gt_workspace(tiny_scene[0], ws, "view_mesh", global_mesh="none")
     from ibr_pipeline.render.ibr import IBRModel
     from ibr_pipeline.scene import cameras_from_json
     from ibr_pipeline.workspace import Workspace
@@ -100,7 +100,7 @@ def test_leave_one_out_when_input_has_no_test_cameras(tiny_scene, tmp_path):
     (src / "gt" / "test_cameras.json").unlink()
     (src / "gt" / "flythrough_cameras.json").unlink()
     ws = tmp_path / "ws"
-    write_gt_workspace(src, ws)
+    write_gt_workspace(src, ws, "reflection", global_mesh="none")
     assert main(["-q", "render_views", str(ws), "--no-progress", "--fly-frames", "3",
                  "--leave-one-out", "false"]) == 0
     tim = json.loads((ws / "renders" / "test" / "timings.json").read_text())

@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from ibr_pipeline.errors import InputError
-from ibr_pipeline.synthetic import cli
+from ibr_pipeline.commands import synth as cli
 
 
 def _parse(argv, add=cli.add_synth_arguments):
@@ -19,7 +19,7 @@ def _parse(argv, add=cli.add_synth_arguments):
 
 
 def test_cli_module_import_is_light():
-    code = ("import sys, ibr_pipeline.synthetic.cli; "
+    code = ("import sys, ibr_pipeline.commands.synth; "
             "print([m for m in ('open3d', 'pycolmap', 'torch', 'numpy') if m in sys.modules])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

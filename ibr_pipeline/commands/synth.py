@@ -1,7 +1,4 @@
-"""argparse hooks for `ibr synth` and `ibr synth-bench` (registered by ibr_pipeline/cli.py).
-
-Nothing heavy is imported at module level: `ibr --help` must stay fast.
-"""
+"""`ibr synth NAME OUT` (a synthetic scene with exact ground truth) and `ibr synth-bench`."""
 from __future__ import annotations
 
 import argparse
@@ -10,6 +7,15 @@ from pathlib import Path
 from ..errors import InputError
 
 SCENE_NAMES = ("mirror_room", "glass_room", "curved", "tiny")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("synth", help="generate a synthetic scene with exact ground truth")
+    add_synth_arguments(p)
+    p.set_defaults(func=synth_main)
+    p = sub.add_parser("synth-bench", help="benchmark synthetic scene generation")
+    add_bench_arguments(p)
+    p.set_defaults(func=bench_main)
 
 
 def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,7 +47,7 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _options(args: argparse.Namespace):
-    from .generate import SynthOptions
+    from ..synthetic.generate import SynthOptions
 
     return SynthOptions(name=args.name, seed=args.seed, width=args.width, height=args.height,
                         views=args.views, test_views=args.test_views, flythrough=args.flythrough,
@@ -54,7 +60,7 @@ def synth_main(args: argparse.Namespace) -> int:
     if getattr(args, "name", None) not in SCENE_NAMES:
         raise InputError(f"NAME: unknown scene {getattr(args, 'name', None)!r} "
                          f"(choose from {', '.join(SCENE_NAMES)})")
-    from .generate import generate
+    from ..synthetic.generate import generate
 
     opts = _options(args)
     opts.validate()  # before touching OUT
@@ -81,7 +87,7 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def bench_main(args: argparse.Namespace) -> int:
-    from .bench import run_bench
+    from ..synthetic.bench import run_bench
 
     if args.repeats < 1:
         raise InputError(f"--repeats must be >= 1, got {args.repeats}")

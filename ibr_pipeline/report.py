@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from statistics import median
 
-from ..errors import InputError
+from .errors import InputError
 
 
 @dataclass(frozen=True)
@@ -104,7 +104,7 @@ def _timings(rep: Report) -> None:
     state = rep.root / ".ibr" / "state"
     if not state.is_dir():
         return
-    from ..stages import STAGES
+    from .stages import STAGES
     rows = []
     for s in STAGES:
         whole = state / f"{s.name}.json"
@@ -176,15 +176,24 @@ def _media(rep: Report) -> None:
     rep.add("Images and video", blocks)
 
 
+def latest_results(results: Path) -> list[dict]:
+    """The rows of an `ibr bench` results.jsonl, the latest per (scene, setting)."""
+    latest: dict[tuple, dict] = {}
+    for line in Path(results).read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            latest[(r.get("scene"), r.get("setting"))] = r
+    return list(latest.values())
+
+
 def _bench(rep: Report) -> None:
     bench = rep.root / "bench"
     results = bench / "results.jsonl"
     if not results.is_file():
         return
-    from .charts import load
     blocks: list = [("img", p, p.stem.replace("_", " ")) for p in sorted(bench.glob("*.png"))]
     rows, stab = [], []
-    for r in load(results):
+    for r in latest_results(results):
         m = r.get("metrics") or {}
         key = f"{r.get('scene')}/{r.get('setting')}"
         f = lambda v, k: "-" if v is None else rep.fact(v, results, f"{key}.{k}")  # noqa: E731
@@ -297,7 +306,7 @@ def to_markdown(rep: Report, img_dir: Path) -> str:
 
 def write_report(ws_root: Path, out_dir: Path | None = None) -> Path:
     """Write index.html, README.md (+ img/) and facts.json; returns the HTML path."""
-    from ..workspace import atomic_path
+    from .workspace import atomic_path
     ws_root = Path(ws_root)
     rep = build(ws_root)
     out_dir = Path(out_dir) if out_dir else ws_root / "report"

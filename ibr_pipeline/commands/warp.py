@@ -98,29 +98,29 @@ def _check_args(args) -> None:
         raise InputError(f"--threads must be in [1, 256], got {args.threads}")
     import torch
     if args.device == "cpu":
-        from .backend import set_threads
+        from ..raytree.backend import set_threads
         set_threads(args.threads)
     if args.device.startswith("cuda"):
         if not torch.cuda.is_available():
             raise InputError(f"--device {args.device}: CUDA is not available")
     elif args.device != "cpu":
         raise InputError(f"--device must be cpu or cuda[:N], got {args.device}")
-    from .backend import resolve
+    from ..raytree.backend import resolve
     resolve(args.backend, args.device)   # e.g. --backend numba --device cuda: one-line error
 
 
 def main(args) -> int:
-    from .backend import passive_omp_wait
+    from ..raytree.backend import passive_omp_wait
     passive_omp_wait()   # before torch loads libgomp (see backend.passive_omp_wait)
     import numpy as np
 
     from ..io.images import write_image
     from ..metrics import psnr
-    from . import apps
-    from .decode import DecodeOptions, decode
-    from .encoding import read_pair_target, read_tree, transmitted_bits, write_tree
-    from .specular import SpecularOptions
-    from .warp import WarpOptions, naive_warp, warp_decoded
+    from ..raytree import apps
+    from ..raytree.decode import DecodeOptions, decode
+    from ..raytree.encoding import read_pair_target, read_tree, transmitted_bits, write_tree
+    from ..raytree.specular import SpecularOptions
+    from ..raytree.warp import WarpOptions, naive_warp, warp_decoded
 
     _check_args(args)
     tree = read_tree(args.tree)

@@ -67,8 +67,8 @@ def main(args: argparse.Namespace) -> int:
     from ..scene import cameras_from_json, cameras_to_json
     from ..stages import render_views as rv
     from ..workspace import Workspace, atomic_path
-    from .ibr import IBRModel
-    from .video import write_mp4
+    from ..render.ibr import IBRModel
+    from ..render.video import write_mp4
 
     log = logging.getLogger("ibr_pipeline.render")
     ws = Workspace(args.workspace)
