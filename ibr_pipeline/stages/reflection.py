@@ -15,6 +15,7 @@ import logging
 from dataclasses import dataclass
 
 from .. import layout as L
+from ..cache import ProcessCache, file_key
 from ..config import StageConfig, param
 from ..errors import InputError
 from ..geometry.decompose import DecomposeOptions
@@ -415,20 +416,17 @@ def _simplify_m1(v, f, wc, cfg):
             {"grid_faces": res.grid_faces, "faces": int(len(res.faces))})
 
 
-_LOADERS: dict = {}
+_LOADERS = ProcessCache(1)
 
 
 def _loader(ctx) -> Loader:
     """One Loader per worker process and (workspace, config, inputs): a worker that runs several
     views reuses the masks / mirror points / images of the others instead of recomputing them."""
-    stamps = tuple((p.stat().st_mtime_ns, p.stat().st_size) for p in
+    stamps = tuple(file_key(p) for p in
                    (ctx.ws.path(ctx.ws.view_file(v, L.DEPTH)) for v in registered_views(ctx))
                    if p.is_file())
     key = (str(ctx.ws.root), ctx.config.digest(), _fingerprint(ctx), stamps)
-    if key not in _LOADERS:
-        _LOADERS.clear()
-        _LOADERS[key] = Loader(ctx)
-    return _LOADERS[key]
+    return _LOADERS.get(key, lambda: Loader(ctx))
 
 
 def run(ctx: StageContext, view: str) -> None:

@@ -9,11 +9,11 @@ interpolation must not cross. Mathematics: geometry/{normals,depth_edges,geodesi
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 from .. import layout as L
+from ..cache import ProcessCache, file_key
 from ..config import StageConfig, param
 from ..runner import Stage, StageContext
 from .common import registered_views
@@ -176,51 +176,42 @@ def view_inputs(ctx: StageContext, view: str) -> list[str]:
     return keys
 
 
-_SCENE_CACHE: dict = {}
+_G = ProcessCache(1)         # (mesh, BVH) of the current global mesh
+_G_DEPTH = ProcessCache(12)  # G's depth per camera: a view's MVS sources are its neighbours in
+                             # the capture order, which are the next views' sources too: ~3 of 4
+                             # renders are reused (12 x 2.4 MB at 640x480)
 
 
 def _global_scene(path):
-    """(mesh, open3d ray-casting scene) of the global mesh, cached per worker process (keyed by
-    path, size and mtime), so the views one worker handles load G and build its BVH once."""
-    import os
-
+    """(file key, mesh, open3d ray-casting scene) of the global mesh, kept per worker process so
+    the views one worker handles load G and build its BVH once."""
     from ..errors import InputError
-    from ..io.mesh import read_ply
     from ..geometry.raycast import build_scene
+    from ..io.mesh import read_ply
 
-    st = os.stat(path)
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    if key not in _SCENE_CACHE:
+    def load():
         mesh = read_ply(path)
         if len(mesh.faces) == 0:
             raise InputError(f"{path}: the global mesh has no triangles")
-        _SCENE_CACHE.clear()
-        _DEPTH_CACHE.clear()
-        _SCENE_CACHE[key] = (mesh, build_scene(mesh.vertices, mesh.faces))
-    return _SCENE_CACHE[key]
+        _G_DEPTH.clear()
+        return mesh, build_scene(mesh.vertices, mesh.faces)
+    key = file_key(path)
+    return (key, *_G.get(key, load))
 
 
-_DEPTH_CACHE: OrderedDict = OrderedDict()  # (G key, camera) -> G's depth in that camera
-_DEPTH_CACHE_SIZE = 12   # a view's MVS sources are its neighbours in the capture order, which are
-                         # the next views' sources too: ~3 of 4 renders are reused (12 x 2.4 MB)
-
-
-def _g_depth(scene, camera):
-    """G ray cast into `camera` (render_depth), cached per worker process for the current G: a
-    view renders G into itself and into its MVS sources, and neighbouring views share sources."""
+def _g_depth(g_key, scene, camera):
+    """G (file key g_key, ray-casting scene) ray cast into `camera` (render_depth), kept per
+    worker process: a view renders G into itself and into its MVS sources, and neighbouring views
+    share sources."""
     from ..geometry.raycast import render_depth
 
-    key = (id(scene), camera.width, camera.height, camera.K.tobytes(), camera.R.tobytes(),
+    def cast():
+        d = render_depth(scene, camera)
+        d.setflags(write=False)
+        return d
+    key = (g_key, camera.width, camera.height, camera.K.tobytes(), camera.R.tobytes(),
            camera.t.tobytes())
-    if key in _DEPTH_CACHE:
-        _DEPTH_CACHE.move_to_end(key)
-        return _DEPTH_CACHE[key]
-    d = render_depth(scene, camera)
-    d.setflags(write=False)
-    _DEPTH_CACHE[key] = d
-    while len(_DEPTH_CACHE) > _DEPTH_CACHE_SIZE:
-        _DEPTH_CACHE.popitem(last=False)
-    return d
+    return _G_DEPTH.get(key, cast)
 
 
 def run(ctx: StageContext, view: str) -> None:
@@ -253,7 +244,7 @@ def _run(ctx: StageContext, view: str) -> None:
     if image.shape[:2] != (cam.height, cam.width):
         raise InputError(f"{ws.path(ctx.scene.view(view).image)}: image is {image.shape[1]}x"
                          f"{image.shape[0]}, its camera says {cam.width}x{cam.height}")
-    mesh, scene = _global_scene(ws.path(L.GLOBAL_MESH))
+    g_key, mesh, scene = _global_scene(ws.path(L.GLOBAL_MESH))
     strokes = None
     if ws.exists(_strokes_key(ctx, view)):
         s = read_image(ws.path(_strokes_key(ctx, view)))
@@ -263,7 +254,7 @@ def _run(ctx: StageContext, view: str) -> None:
     timings = {}
     # 1. initial depth: G ray cast into the view (Xu §4.2)
     t = time.perf_counter()
-    depth0 = _g_depth(scene, cam)
+    depth0 = _g_depth(g_key, scene, cam)
     timings["render_ms"] = 1000 * (time.perf_counter() - t)
     # pixel-valued parameters of our additions (rounded-step strides, MVS edge guard and check
     # radius) were tuned at 320x240: scaled with the width so that they cover the same image
@@ -302,7 +293,7 @@ def _run(ctx: StageContext, view: str) -> None:
     if cfg.mvs and src and mask.any():
         src_imgs = [read_image(ws.path(ctx.scene.view(s).image)) for s in src]
         src_cams = [cams[s] for s in src]
-        src_depths = [_g_depth(scene, c) for c in src_cams]
+        src_depths = [_g_depth(g_key, scene, c) for c in src_cams]
         import scipy.ndimage as nd
         protect = trust = ramp = None
         if cfg.g_trust != "none":  # G is reliable away from its own edges and ramps
