@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Callable, Sequence, Union
 
 from .config import StageConfig, diff_configs
-from .workspace import Workspace, atomic_path
+from .workspace import Workspace, atomic_path, file_sha256
 
 log = logging.getLogger("ibr_pipeline.runner")
 
@@ -118,14 +118,6 @@ class HashCache:
             with atomic_path(self.path) as tmp:
                 tmp.write_text(json.dumps(self.entries))
             self.dirty = False
-
-
-def file_sha256(file: Path) -> str:
-    h = hashlib.sha256()
-    with open(file, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 # --- records ----------------------------------------------------------------------------------

@@ -135,7 +135,7 @@ def plane_accuracy(ws, scene: Path) -> list[dict]:
     return rows
 
 # --- ablation and held-out re-rendering (issue #6 accuracy items 3 and 4) -----------------------
-# Both call the stage's own per-reflector decomposition (`stages.reflection._decompose_reflector`)
+# Both call the stage's own per-reflector decomposition (`geometry.reflection_views.decompose_reflector`)
 # on a Loader of the workspace, in float (no 8-bit PNG round trip), one config per row.
 _NO_V = {"optimise_m1_vertices": False}  # rows 0-6 as measured before M1's vertices existed
 
@@ -170,12 +170,10 @@ def _loader(ws, over: dict, m1_noise: float = 0.0):
     depth noise): M1 errors that the vertex optimisation can fix (G and the planes stay exact).
     `loader.m1_true[(view, reflector)]` keeps the unperturbed M1 depth."""
     from ..config import build_config
-    from ..runner import StageContext
-    from ..stages.reflection import Footprint, Loader, ReflectionConfig, get_planes
-    ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", over),
-                       ws.scene())
-    loader = Loader(ctx)
-    loader.reflectors = get_planes(ctx, loader)["reflectors"]
+    from ..geometry.reflection_views import Footprint, Loader, ReflectionConfig, compute_planes
+    cfg = build_config(ReflectionConfig, "reflection", over)
+    loader = Loader(ws, ws.scene(), cfg)
+    loader.reflectors = compute_planes(loader)["reflectors"]
     loader.m1_true = {}
     footprint = loader.footprint
 
@@ -191,7 +189,7 @@ def _loader(ws, over: dict, m1_noise: float = 0.0):
                                                  (fp.D1 * (1 + f)).astype(np.float32))
         return fp
     loader.footprint = noisy_footprint
-    return ctx, loader
+    return cfg, loader
 
 
 def true_depth(scene: Path, name: str, camera) -> np.ndarray:
@@ -225,7 +223,7 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
     Also M1's and M0's depth errors in the mask (mean |D (1 + delta) / D_true - 1|, median over
     views; M0's truth is the GT depth, which --depth-noise perturbs)."""
     from ..config import build_config
-    from ..stages.reflection import ReflectionConfig, _decompose_reflector
+    from ..geometry.reflection_views import ReflectionConfig, decompose_reflector
     _, loader = _loader(ws, base, m1_noise)
     out = []
     for label, over in rows or ABLATION:
@@ -239,7 +237,7 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
             for refl in loader.reflectors:
                 if refl.get("beta") == 1.0 or loader.mask(v, refl).sum() < cfg.min_mask_pixels:
                     continue
-                info = _decompose_reflector(loader, v, refl, opts, cfg)
+                info = decompose_reflector(loader, v, refl, opts)
                 d = per.setdefault(refl["name"], {"I0": [], "betaI1": [], "discarded": 0,
                                                   "warp": [], "m1": [], "m0": []})
                 for h in info.get("history", []):  # Eq. 5 energy after / before the GN warp
@@ -281,7 +279,7 @@ def timing(ws, base: dict) -> dict:
     Wall and CPU (process) seconds; reflective views = those that wrote I0.png."""
     from ..config import build_config
     from ..runner import StageContext
-    from ..stages.reflection import ReflectionConfig
+    from ..geometry.reflection_views import ReflectionConfig
     from ..stages.reflection import run as run_view
     ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", base),
                        ws.scene())
@@ -378,7 +376,7 @@ def main(argv=None) -> int:
         ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", over),
                            ws.scene())
         c0 = time.process_time()
-        get_planes(ctx, Loader(ctx))
+        get_planes(ctx, Loader(ws, ws.scene(), ctx.config))
         result["planes_seconds"] = time.perf_counter() - t0
         result["planes_cpu_seconds"] = time.process_time() - c0
         result["planes"] = plane_accuracy(ws, scene)

@@ -142,7 +142,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
     from ..config import build_config
     from ..geometry.decompose_terms import pose_distance
     from ..render.blend import view_weights
-    from ..stages.reflection import ReflectionConfig, _decompose_reflector
+    from ..geometry.reflection_views import ReflectionConfig, decompose_reflector
     _, loader = _loader(ws, base, m1_noise)
     cfg = build_config(ReflectionConfig, "reflection", base)
     opts = cfg.decompose
@@ -163,7 +163,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                             key=lambda k: pose_distance(tg.camera, loader.geom(k, refl).camera)):
                 if used >= neighbours:
                     break
-                info = _decompose_reflector(loader, k, refl, opts, cfg)
+                info = decompose_reflector(loader, k, refl, opts)
                 if "discarded" in info:
                     continue
                 kg = info["geom"]

@@ -135,8 +135,7 @@ def test_stage_layers_against_ground_truth(tiny_ws):
 def test_bad_input_and_config(tiny_ws, tmp_path):
     from ibr_pipeline.config import build_config
     from ibr_pipeline.errors import ConfigError, InputError
-    from ibr_pipeline.runner import StageContext
-    from ibr_pipeline.stages.reflection import Loader, ReflectionConfig
+    from ibr_pipeline.geometry.reflection_views import Loader, ReflectionConfig
     with pytest.raises(ConfigError, match="reflection.work_scale"):
         build_config(ReflectionConfig, "reflection", {"work_scale": 5.0})
     with pytest.raises(ConfigError, match="reflection.decompose.min_neighbours"):
@@ -156,9 +155,8 @@ def test_bad_input_and_config(tiny_ws, tmp_path):
     d = np.load(bws.path(bws.view_file(name, "depth.npy")))
     d[3, 3] = np.nan
     np.save(bws.path(bws.view_file(name, "depth.npy")), d)
-    ctx = StageContext(bws, "reflection", build_config(ReflectionConfig, "reflection", {}), bws.scene())
     with pytest.raises(InputError, match="depth.npy"):
-        Loader(ctx).raw(name)
+        Loader(bws, bws.scene(), ReflectionConfig()).raw(name)
 
 
 def test_block_pcg_solves_the_normal_equations_with_fixed_variables():
@@ -207,18 +205,16 @@ def test_mirror_points_skip_a_thick_noisy_reflector():
 def test_detect_auto_only_without_user_reflectors(tiny_ws):
     from ibr_pipeline.config import build_config
     from ibr_pipeline.errors import ConfigError
-    from ibr_pipeline.runner import StageContext
-    from ibr_pipeline.stages.reflection import ReflectionConfig, detect_enabled
+    from ibr_pipeline.geometry.reflection_views import ReflectionConfig, detect_enabled
     _, ws = tiny_ws
     assert ws.exists("input/reflectors.json")
 
-    def ctx(**kw):
-        return StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", kw),
-                            ws.scene())
+    def cfg(**kw):
+        return build_config(ReflectionConfig, "reflection", kw)
     assert ReflectionConfig().detect == "auto"
-    assert not detect_enabled(ctx())  # user planes given: the expensive detection is skipped
-    assert detect_enabled(ctx(use_user_reflectors=False))
-    assert detect_enabled(ctx(detect="on")) and not detect_enabled(ctx(detect="off"))
+    assert not detect_enabled(ws, cfg())  # user planes given: the expensive detection is skipped
+    assert detect_enabled(ws, cfg(use_user_reflectors=False))
+    assert detect_enabled(ws, cfg(detect="on")) and not detect_enabled(ws, cfg(detect="off"))
     with pytest.raises(ConfigError):
         build_config(ReflectionConfig, "reflection", {"detect": "maybe"})
 
@@ -231,13 +227,10 @@ def test_loader_footprints_and_simplified_m1(tiny_ws):
     from ibr_pipeline.geometry.grid_mesh import render_depth
     from ibr_pipeline.geometry.planes import mirror_points
     from ibr_pipeline.io.mesh import read_ply
-    from ibr_pipeline.runner import StageContext
-    from ibr_pipeline.stages.reflection import Loader, ReflectionConfig, get_planes
+    from ibr_pipeline.geometry.reflection_views import Loader, ReflectionConfig, compute_planes
     _, ws = tiny_ws
-    ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", {"detect": "off"}),
-                       ws.scene())
-    loader = Loader(ctx)
-    loader.reflectors = get_planes(ctx, loader)["reflectors"]
+    loader = Loader(ws, ws.scene(), build_config(ReflectionConfig, "reflection", {"detect": "off"}))
+    loader.reflectors = compute_planes(loader)["reflectors"]
     refl = [r for r in loader.reflectors if r["name"] == "mirror"][0]
     checked = rendered = 0
     for name in loader.names:

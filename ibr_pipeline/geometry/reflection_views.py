@@ -1,0 +1,388 @@
+"""The views of a workspace seen for each planar reflector, and the per-view, per-reflector
+two-layer decomposition (Xu et al. §4.3): what the `reflection` stage runs, as library code
+(the stage reads, calls and writes; the benchmarks call the same functions).
+
+* `Loader(ws, scene, cfg)`: reads every registered view at working resolution and builds the
+  reflector masks, mirror-world footprints (M1 depth, §4.3.1) and full `ViewGeom`s on demand.
+* `compute_planes`: the user's reflectors plus planes of G detected by the multi-view cue.
+* `decompose_reflector`: neighbour selection, the reflected-scene prior, one or two passes of
+  geometry.decompose (§4.3.3).
+
+The mathematics is in planes.py, grid_warp.py, decompose.py, reflector_detect.py,
+reflection_prior.py; docs/REFLECTION.md explains the choices.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+
+from .. import layout as L
+from ..config import StageConfig, param
+from ..errors import InputError
+from ..workspace import file_sha256
+from .decompose import DecomposeOptions
+
+
+@dataclass(frozen=True)
+class ReflectionConfig(StageConfig):
+    use_user_reflectors: bool = param(True, "use input/reflectors.json planes (the paper's UI)")
+    detect: str = param("auto", "detect reflective planes of G by the multi-view consistency cue: "
+                        "'auto' = only when no input/reflectors.json is given (or it is not used), "
+                        "'on' = always (user planes win on overlap), 'off' = never",
+                        choices=("auto", "on", "off"))
+    ransac_distance: float = param(0.008, "RANSAC inlier distance for planes of G (m)", min=1e-4, max=0.5)
+    max_planes: int = param(30, "RANSAC planes extracted from G (detection candidates)", min=1, max=500)
+    detect_threshold: float = param(0.02, "median surface-warp error above which a plane is a "
+                                    "reflector (linear intensity)", min=1e-4, max=1.0)
+    detect_beta: float = param(0.05, "a plane whose Eq. 3 reflectance fit from view differences "
+                               "(reflector_detect.reflectance_cue) is at least this, with "
+                               "correlation >= detect_corr, is a reflector (weak reflectors); "
+                               "0 = off", min=0.0, max=1.0)
+    detect_corr: float = param(0.25, "see detect_beta", min=0.0, max=1.0)
+    detect_min_pairs: int = param(4, "view pairs a detected reflector must be scored on",
+                                  min=1, max=1000)
+    mirror_ratio: float = param(0.5, "mirror-warp / surface-warp error below which a detected "
+                                "reflector is a mirror (beta = 1, I0 = 0)", min=0.0, max=10.0)
+    work_scale: float = param(1.0, "working resolution as a fraction of the image size (demo budget; "
+                              "1.0 = full quality)",
+                              min=0.1, max=1.0)
+    min_mask_pixels: int = param(100, "smaller reflector masks (at working size) are ignored",
+                                 min=1, max=10**7)
+    min_gap: float = param(0.03, "M1: reflected-ray hits closer than this to the plane (noise of a "
+                           "fused G) are skipped (m)", min=0.0, max=1.0)
+    prior_tol: float = param(0.03, "depth tolerance (x depth) of the prior's visibility test",
+                             min=1e-4, max=1.0)
+    mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
+    m1_simplify: bool = param(True, "quadric-simplify M1 like the per-view surface mesh (§4.2.3, "
+                              "view_mesh's adaptive target): flat reflected walls need few "
+                              "triangles, and llvmpipe's frame time grows with them")
+    m1_max_vertices_640x480: int = param(20000, "M1 vertex budget per view, scaled by pixel count "
+                                         "(view_mesh's default)", min=3, max=10_000_000)
+    m1_tol_score: float = param(0.002, "M1 adaptive target: accept a coarser mesh while its mean "
+                                "relative depth error grows by at most this (view_mesh's default)",
+                                min=0.0, max=1.0)
+
+    decompose: DecomposeOptions = param(DecomposeOptions(), "the two-layer decomposition (§4.3)")
+
+
+# --- loading ------------------------------------------------------------------------------------
+class Loader:
+    """Reads views at working resolution and builds ViewGeoms; caches within one process.
+
+    Memory stays bounded with the number of views (a 120-view 640x480 capture grew two workers to
+    9 GB each when every view's full ViewGeom was kept): every view keeps only its images and, per
+    reflector, a `Footprint` (beta support + M1 depth, what neighbour selection reads); full
+    ViewGeoms (surface and mirror-world points) are rebuilt on demand and kept in a small LRU."""
+
+    GEOM_CACHE = 16  # full ViewGeoms kept: a view + its <= 6 neighbours, with room to spare
+
+    def __init__(self, ws, scene, cfg: "ReflectionConfig"):
+        from collections import OrderedDict
+
+        from ..io.mesh import read_ply
+        from .raycast import build_scene
+
+        self.ws, self.scene_manifest, self.cfg = ws, scene, cfg
+        self.cams = L.registered_cameras(ws)
+        self.names = registered_views(ws, scene)
+        G = read_ply(ws.path(L.GLOBAL_MESH))
+        if len(G.faces) == 0:
+            raise InputError(f"{ws.path(L.GLOBAL_MESH)}: global mesh has no triangles")
+        self.G = G
+        self.scene = build_scene(G.vertices, G.faces)
+        self._raw: dict = {}
+        self.bounds = (G.vertices.min(0), G.vertices.max(0))  # rays leaving G end on its box
+        self._masks: dict = {}
+        self._fp: dict = {}    # footprints
+        self._full: OrderedDict = OrderedDict()  # LRU of full ViewGeoms
+        self.first: dict = {}  # first-pass R of views (multi-view pass only)
+
+    def camera(self, name):
+        cam = self.cams[name]
+        s = self.cfg.work_scale
+        if s >= 1.0:
+            return cam
+        return cam.resized(max(8, round(cam.width * s)), max(8, round(cam.height * s)))
+
+    def raw(self, name):
+        """(full image, full depth, working camera, working image, working depth)."""
+        if name in self._raw:
+            return self._raw[name]
+        import cv2
+        import numpy as np
+
+        from ..io.images import read_image
+        cam = self.cams[name]
+        img = read_image(self.ws.path(self.scene_manifest.view(name).image))
+        dkey = self.ws.view_file(name, L.DEPTH)
+        try:
+            depth = np.load(self.ws.path(dkey)).astype(np.float64)
+        except (OSError, ValueError) as e:
+            raise InputError(f"{self.ws.path(dkey)}: cannot read depth ({e})") from None
+        if depth.shape != (cam.height, cam.width) or img.shape[:2] != depth.shape:
+            raise InputError(f"{self.ws.path(dkey)}: depth is {depth.shape}, image is "
+                             f"{img.shape[:2]}, camera is {cam.height}x{cam.width}")
+        if not np.all(np.isfinite(depth)):
+            raise InputError(f"{self.ws.path(dkey)}: depth has NaN/inf (0 means no depth)")
+        wc = self.camera(name)
+        img = np.asarray(img, np.float32)  # kept for every view: float32 (ViewGeoms: float64)
+        if wc is cam:
+            wi, wd = img, depth
+        else:
+            wi = cv2.resize(img, (wc.width, wc.height), interpolation=cv2.INTER_AREA)
+            wd = cv2.resize(depth, (wc.width, wc.height), interpolation=cv2.INTER_NEAREST)
+        self._raw[name] = (img, depth, wc, wi, wd)
+        return self._raw[name]
+
+    def mask(self, name, refl):
+        key = (name, refl["name"])
+        if key not in self._masks:
+            self._masks[key] = self._mask(name, refl)
+        return self._masks[key]
+
+    def prior(self, name, refl, reflectors):
+        """beta * reflected-scene colour (H, W, 3), NaN where unobserved (reflection_prior.py)."""
+        import numpy as np
+
+        from .reflection_prior import reflected_scene_colour
+        g = self.geom(name, refl)
+        views = []
+        for o in self.names:
+            _, _, wc, wi, wd = self.raw(o)
+            ex = np.zeros(wd.shape, bool)
+            for r in reflectors:
+                ex |= self.mask(o, r)
+            views.append((wc, wi, wd, ex))
+        X1 = np.where(g.mask[..., None], g.X1, np.nan)
+        C = reflected_scene_colour(X1, refl["plane"], views, tol=self.cfg.prior_tol)
+        return float(refl.get("beta") or 1.0) * C
+
+    def _mask(self, name, refl):
+        import cv2
+        import numpy as np
+
+        from .planes import reflector_mask
+        _, _, wc, _, wd = self.raw(name)
+        if refl.get("masks", {}).get(name):  # a user mask overrides the projected extent
+            from ..io.images import read_image
+            m = read_image(self.ws.path(refl["masks"][name])).mean(2) > 0.5
+            m = cv2.resize(m.astype(np.uint8), (wc.width, wc.height),
+                           interpolation=cv2.INTER_NEAREST) > 0
+            return m & (wd > 0)
+        poly = None if refl.get("polygon") is None else np.asarray(refl["polygon"])
+        return reflector_mask(wc, refl["plane"], poly, wd, rel_tol=0.02)
+
+    def footprint(self, name, refl) -> "Footprint":
+        """The view's beta support and M1 depth for `refl` (mirror points cast into G, §4.3.1)."""
+        key = (name, refl["name"])
+        if key not in self._fp:
+            import numpy as np
+
+            from .planes import mirror_points
+            _, _, wc, _, _ = self.raw(name)
+            m = self.mask(name, refl)
+            _, D1 = mirror_points(wc, refl["plane"], m, self.scene, min_gap=self.cfg.min_gap,
+                                  bounds=self.bounds)
+            self._fp[key] = Footprint(name, wc, m, D1.astype(np.float32))
+        return self._fp[key]
+
+    def geom(self, name, refl):
+        """The full ViewGeom (LRU-cached). M1's points are rebuilt from the footprint's depth:
+        `mirror_points` puts every mirror-world point on its pixel's camera ray."""
+        key = (name, refl["name"])
+        if key in self._full:
+            self._full.move_to_end(key)
+            return self._full[key]
+        import numpy as np
+
+        from .decompose_terms import ViewGeom
+        from .planes import depth_points
+        _, _, wc, wi, wd = self.raw(name)
+        fp = self.footprint(name, refl)
+        D1 = fp.D1.astype(np.float64)
+        g = ViewGeom(name, wc, wi.astype(np.float64), wd, fp.mask, depth_points(wc, wd),
+                     depth_points(wc, D1), D1)
+        self._full[key] = g
+        while len(self._full) > self.GEOM_CACHE:
+            self._full.popitem(last=False)
+        return g
+
+
+@dataclass
+class Footprint:
+    """What neighbour selection (`decompose.select_neighbours`) reads of another view."""
+
+    name: str
+    camera: object
+    mask: object  # (H, W) bool beta support
+    D1: object    # (H, W) float32 z-depth of M1 (0 = none)
+
+
+# --- reflector planes (shared by every view) ------------------------------------------------------
+def registered_views(ws, scene) -> list[str]:
+    """The views `global_mesh` registered, in scene order."""
+    cams = L.registered_cameras(ws)
+    return [n for n in scene.names if n in cams]
+
+
+def user_reflectors_key(ws) -> list[str]:
+    return [L.USER_REFLECTORS] if ws.exists(L.USER_REFLECTORS) else []
+
+
+def planes_fingerprint(ws, scene, cfg: "ReflectionConfig") -> str:
+    """What the reflector planes are computed from (compute_planes)."""
+    h = hashlib.sha256()
+    for key in [L.REGISTERED_CAMERAS, L.GLOBAL_MESH] + user_reflectors_key(ws):
+        h.update(key.encode() + file_sha256(ws.path(key)).encode())
+    h.update(json.dumps([cfg.use_user_reflectors, detect_enabled(ws, cfg), cfg.detect_min_pairs,
+                         cfg.min_gap, cfg.ransac_distance,
+                         cfg.detect_threshold, cfg.mirror_ratio, cfg.work_scale,
+                         cfg.detect_beta, cfg.detect_corr,
+                         cfg.min_mask_pixels]).encode())
+    if detect_enabled(ws, cfg):
+        for v in registered_views(ws, scene):
+            h.update(file_sha256(ws.path(ws.view_file(v, L.DEPTH))).encode())
+    return h.hexdigest()[:16]
+
+
+def detect_enabled(ws, cfg: "ReflectionConfig") -> bool:
+    """`detect`: 'on' / 'off', or 'auto' = detect only when no user reflectors are used."""
+    if cfg.detect == "auto":
+        return not (cfg.use_user_reflectors and ws.exists(L.USER_REFLECTORS))
+    return cfg.detect == "on"
+
+
+def _same_plane(a, b, angle_deg=5.0, offset=0.05) -> bool:
+    import numpy as np
+    na, nb = np.asarray(a[:3]), np.asarray(b[:3])
+    cos = float(na @ nb)
+    if cos < 0:
+        cos, b = -cos, [-x for x in b]
+    return cos > np.cos(np.radians(angle_deg)) and abs(a[3] - b[3]) < offset
+
+
+def compute_planes(loader: Loader) -> dict:
+    """User reflectors + planes of G detected by the multi-view cue (user ones win on overlap)."""
+    import numpy as np
+
+    from .planes import ransac_planes
+    from .reflector_detect import is_reflective, reflectance_cue, score_candidate
+    ws, cfg = loader.ws, loader.cfg
+    user = []
+    if cfg.use_user_reflectors and ws.exists(L.USER_REFLECTORS):
+        from ..scene import read_reflectors
+        for r in read_reflectors(ws.path(L.USER_REFLECTORS)):
+            d = r.to_dict()
+            d["masks"] = {v: f"input/{k}" for v, k in r.masks.items()}
+            d["source"] = "user"
+            user.append(d)
+    detected, candidates = [], []
+    if detect_enabled(ws, cfg):
+        from .planes import sample_mesh
+        G = loader.G
+        V, F = G.vertices.astype(np.float64), np.asarray(G.faces)
+        area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                    axis=1).sum()
+        pts = sample_mesh(V, F, int(min(200000, max(20000, area * 2000))), seed=0)
+        centres = np.array([loader.cams[v].center for v in loader.names])
+        for i, c in enumerate(ransac_planes(pts, distance=cfg.ransac_distance, seed=0,
+                                            max_planes=cfg.max_planes, min_points=200)):
+            pl = np.asarray(c["plane"])
+            if np.median(centres @ pl[:3] + pl[3]) < 0:  # orient n towards the cameras
+                pl = -pl
+            cand = {"name": f"detected_{i}", "plane": [float(x) for x in pl],
+                    "polygon": c["polygon"].tolist(), "beta": None, "masks": {}}
+            views = []
+            for v in loader.names:  # mask first (cheap); mirror points only where seen
+                if loader.mask(v, cand).sum() >= cfg.min_mask_pixels:
+                    views.append(loader.geom(v, cand))
+            score = score_candidate(views) if len(views) >= 2 else {"surface_error": None}
+            if len(views) >= 2 and cfg.detect_beta > 0:  # Eq. 3 fit (weak reflectors)
+                cols = {g.name: loader.prior(g.name, dict(cand, beta=1.0), [cand]) for g in views}
+                score.update({f"fit_{k}": v for k, v in reflectance_cue(views, cols).items()})
+            cand["score"] = score
+            cand["views"] = len(views)
+            candidates.append({k: cand[k] for k in ("name", "plane", "score", "views")})
+            if is_reflective(score, cfg.detect_threshold, cfg.detect_min_pairs,
+                             cfg.detect_beta or None, cfg.detect_corr):
+                if score.get("mirror_ratio") is not None and score["mirror_ratio"] < cfg.mirror_ratio:
+                    cand["beta"] = 1.0  # a mirror (§4.3.3 special case)
+                elif (score.get("fit_beta") or 0) > 0:  # the fitted reflectance (Eq. 3)
+                    cand["beta"] = round(float(np.clip(score["fit_beta"], 0.01, 0.99)), 4)
+                cand["source"] = "detected"
+                detected.append(cand)
+    merged = list(user)  # user planes win; among detections the best-supported piece wins
+    for d in sorted(detected, key=lambda d: -(d["score"].get("pairs") or 0)):
+        if not any(_same_plane(d["plane"], u["plane"]) for u in merged):
+            merged.append(d)
+    return {"format": "ibr_pipeline.reflectors/1", "reflectors": merged, "candidates": candidates,
+            "fingerprint": planes_fingerprint(ws, loader.scene_manifest, cfg)}
+
+
+# --- one view, one reflector -------------------------------------------------------------------
+def decompose_reflector(loader: Loader, view: str, refl: dict, opts: DecomposeOptions | None = None) -> dict:
+    """The two-layer decomposition of `view` for reflector `refl` (planes.json entry) with
+    `opts` (default: the loader's cfg.decompose): neighbours, prior, one or two passes. Returns
+    its report; R (the reflection component), pose, offsets and the ViewGeom unless discarded."""
+    import numpy as np
+
+    from .decompose import decompose, select_neighbours
+    cfg = loader.cfg
+    opts = opts or cfg.decompose
+    mirror = refl.get("beta") == 1.0
+    beta = float(refl.get("beta") or 1.0)
+    ref = loader.geom(view, refl)
+    others = [loader.footprint(o, refl) for o in loader.names if o != view]
+    nbs_sel = select_neighbours(ref, [o for o in others if o.mask.sum() >= cfg.min_mask_pixels], opts)
+    nbs = [loader.geom(n, refl) for n, _ in nbs_sel]
+    info = {"name": refl["name"], "beta": beta, "mirror": mirror, "mask_pixels": int(ref.mask.sum()),
+            "neighbours": [{"view": n, "overlap": round(f, 3)} for n, f in nbs_sel]}
+    if not mirror and len(nbs) < opts.min_neighbours:
+        info["discarded"] = f"{len(nbs)} neighbour(s) with > {opts.min_overlap:.0%} overlap"
+        return info
+    prior = None
+    if opts.lambda_scene > 0 and not mirror:
+        prior = loader.prior(view, refl, loader.reflectors)
+    res = decompose(ref, nbs, opts, beta=beta, mirror=mirror, R_prior=prior)
+    history = [dict(h, **{"pass": 1}) for h in res["history"]]
+    if opts.multiview and not mirror and nbs:  # §4.3.3: aggregate the neighbours' first pass
+        loader.first[(view, refl["name"])] = res["R"]
+        prev = {}
+        for nb in nbs:
+            nn = select_neighbours(nb, [o for o in [loader.footprint(view, refl)] + others
+                                        if o.name != nb.name
+                                        and o.mask.sum() >= cfg.min_mask_pixels], opts)
+            nbn = [loader.geom(n, refl) for n, _ in nn]
+            key = (nb.name, refl["name"])
+            if key in loader.first:  # first pass already computed by this worker
+                prev[nb.name] = loader.first[key]
+            elif nbn:
+                nbp = loader.prior(nb.name, refl, loader.reflectors) if opts.lambda_scene > 0 else None
+                prev[nb.name] = loader.first[key] = decompose(nb, nbn, opts, beta=beta,
+                                                              R_prior=nbp)["R"]
+        res = decompose(ref, nbs, opts, beta=beta, aggregate_from=prev, R_init=res["R"],
+                        R_prior=prior)
+        history += [dict(h, **{"pass": 2}) for h in res["history"]]
+    info.update(R=res["R"], pose=res["pose"], history=history, mask=ref.mask, geom=ref,
+                m1_offset=res.get("m1_offset"), m0_offset=res.get("m0_offset"))
+    for key in ("m0_offset", "m1_offset"):  # relative depth offsets of M0's / M1's vertices
+        if info[key] is not None:
+            o = np.abs(info[key][ref.mask])
+            info[key + "s"] = {"mean_abs": round(float(o.mean()), 5) if o.size else 0.0,
+                               "max_abs": round(float(o.max()), 5) if o.size else 0.0}
+    return info
+
+
+def simplify_m1(v, f, wc, cfg: "ReflectionConfig"):
+    """M1 through view_mesh's adaptive quadric simplification (§4.2.3): the reference is M1's own
+    grid mesh rendered into the view, so its cut edges (mesh borders) and depth survive."""
+    import numpy as np
+
+    from .grid_mesh import simplify_adaptive
+    budget = max(200, int(round(cfg.m1_max_vertices_640x480 * wc.width * wc.height / (640 * 480))))
+    res = simplify_adaptive(v.astype(np.float64), f, wc, None, budget, 200, cfg.m1_tol_score)
+    return (res.vertices.astype(np.float32), res.faces.astype(np.int32),
+            {"grid_faces": res.grid_faces, "faces": int(len(res.faces))})
+
+
