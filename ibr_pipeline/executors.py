@@ -2,8 +2,8 @@
 
 All three run the same picklable task function (`runner.run_view_task`) on the same arguments and
 yield `(index, result, exception)` as tasks finish, so a stage's outputs are identical whichever ran
-it; only the coordinating process writes records. (DESIGN.md places executors in runner.py; they
-live here to keep runner.py about planning and records.)
+it; only the coordinating process writes records. They live apart from runner.py, which is about
+planning and records.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`ibr render WS --cameras FILE | --heldout | --path fly [--supersample] [--out DIR]` (issue #7).
+"""`ibr render WS --cameras FILE | --heldout | --path fly [--supersample] [--out DIR]`.
 
 Renders new views of a workspace with the two-layer renderer (`render/ibr.py`): PNG frames (linear
 8-bit, scene.py convention), an MP4 (display sRGB) when there are two frames or more, and
@@ -7,7 +7,6 @@ Renders new views of a workspace with the two-layer renderer (`render/ibr.py`): 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 
@@ -37,21 +36,15 @@ def register(sub) -> None:
     p.set_defaults(func=main)
 
 
-def _err(msg: str) -> int:
-    print(f"ibr render: error: {msg}", file=sys.stderr)
-    return 2
-
-
 def _supersampler(ws, self_ensemble: bool = False):
-    try:
-        from ..nn.infer import SuperSampler
-    except ImportError as e:
-        return None, f"--supersample needs ibr_pipeline.nn.infer.SuperSampler (issue #8): {e}"
-    if not ws.path("nn/dsrnet.pt").is_file():
-        return None, f"{ws.path('nn/dsrnet.pt')}: no trained DSRNet (run `ibr supersample {ws.root}`)"
+    from .. import layout as L
+    from ..errors import InputError
+    from ..nn.infer import SuperSampler
+    if not ws.path(L.MODEL).is_file():
+        raise InputError(f"{ws.path(L.MODEL)}: no trained DSRNet (run `ibr supersample {ws.root}`)")
     s = SuperSampler.load(ws, self_ensemble=self_ensemble)
     s.reset()
-    return s, ""
+    return s
 
 
 def main(args: argparse.Namespace) -> int:
@@ -61,6 +54,7 @@ def main(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
+    from .. import layout as L
     from ..errors import InputError
     from ..io.images import write_image
     from ..runner import StageContext
@@ -95,10 +89,8 @@ def main(args: argparse.Namespace) -> int:
     if args.self_ensemble and not args.supersample:
         raise InputError("--self-ensemble needs --supersample")
     if args.supersample:
-        sampler, why = _supersampler(ws, args.self_ensemble)
-        if sampler is None:
-            return _err(why)
-    out = args.out or ws.path(f"renders/cli_{what}")
+        sampler = _supersampler(ws, args.self_ensemble)
+    out = args.out or ws.path(f"{L.RENDERS}/cli_{what}")
     model = IBRModel.load(ws, layers=not args.single_layer, settings=cfg.renderer)
     frames, rows, prev = [], [], None
     try:

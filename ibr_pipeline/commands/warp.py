@@ -11,7 +11,6 @@ Imports nothing heavy at module level (`ibr --help` stays fast).
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 from ..errors import InputError
@@ -172,6 +171,3 @@ def main(args) -> int:
             print(f"{k}: {v}")
     return 0
 
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(2)

@@ -2,7 +2,7 @@
 a mesh using the KinectFusion algorithm"), and the reflector handling that keeps G honest.
 
 * `tsdf_fuse`: open3d tensor `VoxelBlockGrid` (Curless & Levoy / KinectFusion TSDF averaging;
-  `ScalableTSDFVolume` returns empty meshes in open3d 0.20, DESIGN.md), marching cubes
+  `ScalableTSDFVolume` returns empty meshes in open3d 0.20, docs/DESIGN.md), marching cubes
   (`extract_triangle_mesh`), then small-component cleanup.
 * Mirrors: a depth sensor (and MVS) sees the virtual "mirror world" behind a reflector.
   `reflector_mask` marks, per depth frame, the pixels inside a reflector's projected polygon whose

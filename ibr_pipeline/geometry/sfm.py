@@ -1,5 +1,5 @@
 """Structure from motion with pycolmap (Xu et al. §4.1 computes poses with RealityCapture; we use
-COLMAP: Schönberger & Frahm 2016). SIFT extraction (ALIKED aborts the process, DESIGN.md), sequential
+COLMAP: Schönberger & Frahm 2016). SIFT extraction (ALIKED aborts the process, docs/DESIGN.md), sequential
 or exhaustive matching, incremental mapping; known intrinsics are fixed when the input gives them.
 """
 from __future__ import annotations

@@ -15,7 +15,7 @@ from .colmap import read_colmap_model
 def read_input(root: Path) -> Scene:
     """Read an input folder into a Scene whose paths are `input/...` workspace keys.
 
-    Accepted layouts (docs/DESIGN.md): a COLMAP workspace (`images/` + `sparse/0`, binary or text
+    Accepted layouts (README.md "Inputs"): a COLMAP workspace (`images/` + `sparse/0`, binary or text
     model, read with pycolmap); `images/` + `cameras.json`; or a bare folder of images (in
     `images/` or at the top level; no poses: SfM must run). Optional: `depth/<image stem>.png`
     (16-bit mm) and `reflectors.json`. Only names and cameras are read here; pixel contents are

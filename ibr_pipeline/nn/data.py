@@ -13,7 +13,6 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..errors import InputError
 from ..scene import Camera
 from .warp import depth_motion
 
@@ -36,7 +35,7 @@ class LowRes:
             raise ValueError(f"render must be colour ({h}, {w}, 3) and depth ({h}, {w}) for a "
                              f"{w}x{h} camera, got {self.color.shape} and {self.depth.shape}")
         if not (np.all(np.isfinite(self.color)) and np.all(np.isfinite(self.depth))):
-            raise InputError("low-resolution render contains NaN or infinite values")
+            raise ValueError("low-resolution render contains NaN or infinite values")
 
 
 @dataclass
@@ -53,7 +52,7 @@ class Sample:
 
 def low_res_camera(camera: Camera, scale: int) -> Camera:
     if camera.width % scale or camera.height % scale:
-        raise InputError(f"image size {camera.width}x{camera.height} is not divisible by the "
+        raise ValueError(f"image size {camera.width}x{camera.height} is not divisible by the "
                          f"supersampling scale {scale}")
     return camera.resized(camera.width // scale, camera.height // scale)
 
@@ -64,8 +63,8 @@ def split_views(names: Sequence[str], val_fraction: float = 0.1) -> tuple[list[s
     sequence so they are not one block of the path."""
     names = list(names)
     if len(names) < 2:
-        raise InputError(f"supersample: need at least 2 views to train, got {len(names)}")
-    if len(names) < 3:  # fallback (issue #10: runs complete): train on both, nothing held out
+        raise ValueError(f"need at least 2 views to train, got {len(names)}")
+    if len(names) < 3:  # too few to hold one out: train on both, validate on none
         return names, []
     n_val = min(len(names) - 2, max(1, int(round(len(names) * val_fraction))))
     val_idx = {int((k + 0.5) * len(names) / n_val) for k in range(n_val)}

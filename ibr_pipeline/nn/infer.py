@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
 from ..scene import Camera
 from .warp import depth_motion
 
@@ -84,10 +83,10 @@ class SuperSampler:
         depth = np.asarray(depth_lr, np.float32)
         h, w = camera_lr.height, camera_lr.width
         if color.shape != (h, w, 3) or depth.shape != (h, w):
-            raise InputError(f"supersample: render must be colour ({h}, {w}, 3) and depth "
+            raise ValueError(f"render must be colour ({h}, {w}, 3) and depth "
                              f"({h}, {w}) for a {w}x{h} camera, got {color.shape}, {depth.shape}")
         if not (np.all(np.isfinite(color)) and np.all(np.isfinite(depth))):
-            raise InputError("supersample: render contains NaN or infinite values")
+            raise ValueError("render contains NaN or infinite values")
         t0 = time.perf_counter()
         prev = self._prev
         if prev is None or prev[0].shape != color.shape:

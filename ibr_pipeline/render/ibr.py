@@ -118,7 +118,7 @@ class IBRModel:
 
     def __init__(self, views: list[ViewData], settings: RenderSettings | None = None):
         if not views:
-            raise InputError("IBR model: no views to render from")
+            raise ValueError("IBR model: no views to render from")
         self.views = list(views)
         self.settings = settings or RenderSettings()
         self.names = [v.name for v in self.views]
@@ -142,6 +142,8 @@ class IBRModel:
         s = settings or RenderSettings()
         views = []
         names = [n for n in scene.names if n in cams]
+        if not names:
+            raise InputError(f"{ws.path(L.REGISTERED_CAMERAS)}: no registered view to render from")
         for name in tqdm(names, desc="loading views", unit="view", disable=not progress, leave=False):
             views.append(load_view(ws, name, cams[name], scene.view(name).image, layers, s))
         return cls(views, s)
@@ -153,7 +155,7 @@ class IBRModel:
                                     camera.center, s.lam)
         avail = np.array([n not in set(exclude) for n in self.names])
         if not avail.any():
-            raise InputError("IBR model: every view is excluded")
+            raise ValueError("IBR model: every view is excluded")
         prev = None
         if s.hysteresis and previous is not None and previous.camera is not None:
             prev = (previous.camera.R, previous.camera.center,

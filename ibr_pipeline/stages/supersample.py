@@ -80,7 +80,7 @@ def run(ctx: StageContext) -> None:
     from ..io.images import read_image
     from ..nn.data import (capture_pairs, make_sample, nearest_views, render_low_res,
                            sequence_pairs, split_views)
-    from ..nn.model import count_parameters, cpu_threads, preset, save_model
+    from ..nn.model import count_parameters, cpu_threads, preset, resolve_device, save_model
     from ..nn.train import evaluate, plot_losses, train
     from ..render.low_res import IBRRenderer, StandInRenderer
     from ..workspace import atomic_path
@@ -92,7 +92,18 @@ def run(ctx: StageContext) -> None:
     tcfg = cfg.train
     if tcfg.vgg_weights and not ws.path(tcfg.vgg_weights).is_file():
         raise InputError(f"{ws.path(tcfg.vgg_weights)}: supersample.train.vgg_weights file not found")
-    train_names, val_names = split_views(names, cfg.val_fraction)
+    try:
+        train_names, val_names = split_views(names, cfg.val_fraction)
+    except ValueError as e:
+        raise InputError(f"{ws.path(L.REGISTERED_CAMERAS)}: {e}") from None
+    try:
+        resolve_device(tcfg.device)
+    except ValueError as e:
+        raise ConfigError("supersample.train.device", str(e)) from None
+    for n in names:
+        if cams[n].width % cfg.scale or cams[n].height % cfg.scale:
+            raise ConfigError("supersample.scale", f"view {n} is {cams[n].width}x{cams[n].height}, "
+                              f"not divisible by {cfg.scale}")
     if cfg.exclude_nearest and cfg.exclude_nearest >= len(names) - 1:
         raise InputError(f"supersample.exclude_nearest = {cfg.exclude_nearest} would leave out "
                          f"every other view ({len(names)} registered views)")

@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from ibr_pipeline.cli import main
-from ibr_pipeline.errors import InputError
 from ibr_pipeline.gt_workspace import write_gt_workspace
 from ibr_pipeline.nn.data import low_res_camera, nearest_views
 from ibr_pipeline.nn.infer import run_network
@@ -55,7 +54,7 @@ def test_far_render_leaves_out_the_nearest_views(gt_ws):
     assert (dep > 0).mean() > 0.2
     assert (dep_far > 0).mean() <= (dep > 0).mean()     # fewer sources cover no more
     assert np.abs(col_far - col).mean() > 1e-3          # other sources, another image
-    with pytest.raises(InputError, match="every view is excluded"):
+    with pytest.raises(ValueError, match="every view is excluded"):
         r.excluding({n: [m for m in names if m != n]})(n, cam)
     col_again, _ = r(n, cam)                            # the original renderer is unchanged
     np.testing.assert_array_equal(col_again, col)

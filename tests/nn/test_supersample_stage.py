@@ -55,9 +55,9 @@ def test_stage_runs_and_sampler_uses_it(ws, tiny_scene):
         assert 0 <= hr.min() and hr.max() <= 1
         gt = read_image(tiny_scene[0] / "images" / name)
         assert np.abs(hr - gt).mean() < 0.1
-    with pytest.raises(InputError, match="depth"):
+    with pytest.raises(ValueError, match="depth"):
         sampler(color, depth[:, :10], lr_cam)
-    with pytest.raises(InputError, match="NaN"):
+    with pytest.raises(ValueError, match="NaN"):
         sampler(np.full_like(color, np.nan), depth, lr_cam)
 
 

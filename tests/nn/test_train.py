@@ -111,12 +111,11 @@ def test_beats_bicubic_on_held_out_views(sample_scene):
 def test_split_falls_back_to_no_validation_with_two_views():
     import pytest
 
-    from ibr_pipeline.errors import InputError
     from ibr_pipeline.nn.data import split_views
     assert split_views(["a", "b"]) == (["a", "b"], [])
     tr, va = split_views([f"{i:04d}" for i in range(20)])
     assert len(va) == 2 and not set(tr) & set(va)
-    with pytest.raises(InputError, match="at least 2"):
+    with pytest.raises(ValueError, match="at least 2"):
         split_views(["a"])
 
 
