@@ -10,7 +10,6 @@ Sim(3) estimated from the depth frames).
 from __future__ import annotations
 
 import math
-from typing import Sequence
 
 import numpy as np
 
@@ -36,13 +35,6 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True
     s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale and var_s > 0 else 1.0
     t = mu_d - s * R @ mu_s
     return s, R, t
-
-
-def sim3_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = s * R
-    T[:3, 3] = t
-    return T
 
 
 def transform_camera(cam: Camera, s: float, R: np.ndarray, t: np.ndarray) -> Camera:
@@ -114,7 +106,3 @@ def pose_errors(estimated: dict[str, Camera], truth: dict[str, Camera]) -> dict:
     stat = lambda x: {"median": float(np.median(x)), "mean": float(x.mean()), "max": float(x.max())}  # noqa: E731
     return {"views": len(names), "scale": s, "rotation_deg": stat(rot), "center_m": stat(pos),
             "rotation_deg_orientation_aligned": stat(rot_o), "relative_rotation_deg_consecutive": stat(rel)}
-
-
-def camera_centers(cams: Sequence[Camera]) -> np.ndarray:
-    return np.array([c.center for c in cams])

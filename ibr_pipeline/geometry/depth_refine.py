@@ -152,7 +152,7 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
     2. geometric (Xu: discard when photometric and geometric differ by > 5 %): at least
        `min_consistent` sources agree within `agree_rel` — `check` "near": `near_consistency`
        (G in the sources, `check_radius` px tolerance), "roundtrip": the strict forward-backward
-       `mvs.geometric_consistency` (the first version; rejects the corrections where G is wrong);
+       `mvs.geometric_consistency` (it rejects the corrections where G itself is wrong);
     3. where the kept MVS depth differs from G's by at most `min_change` x Eq. 1's lambda, G's
        depth is kept (G is the more precise of the two on surfaces: MVS noise is 5-13 mm here);
     4. `edge_guard`: kept pixels within `guard_px` (the NCC window radius) of an Eq. 1 edge inside

@@ -1,4 +1,4 @@
-"""Occlusion edges the global mesh has rounded away (an addition to Xu et al. §4.2.1; issue #5).
+"""Occlusion edges the global mesh has rounded away (an addition to Xu et al. §4.2.1).
 
 Eq. 1 compares *adjacent* pixels. A TSDF-fused global mesh G (2-3 cm voxels) turns a small step
 (a picture frame, a poster, a wall panel 1-5 cm in front of the wall) into a ramp a few pixels wide:

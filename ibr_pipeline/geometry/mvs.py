@@ -1,5 +1,5 @@
 """Plane-sweep multi-view stereo in torch (CPU or CUDA): Xu et al. §4.1 (global mesh without depth)
-and §4.2.2 (masked per-view refinement, issue #5).
+and §4.2.2 (masked per-view refinement).
 
 pycolmap's PatchMatch needs CUDA, so dense depth on CPU is ours. The method is a classic
 fronto-parallel plane sweep (Collins 1996; Gallup et al. 2007):

@@ -90,11 +90,3 @@ def world_normals(normals_cam: np.ndarray, camera: Camera) -> np.ndarray:
     if n.ndim != 3 or n.shape[2] != 3:
         raise ValueError(f"normals must be (H, W, 3), got {n.shape}")
     return n @ camera.R
-
-
-def camera_normals(normals_world: np.ndarray, camera: Camera) -> np.ndarray:
-    """Rotate (H, W, 3) world-space normals to camera space (n_c = R n_w)."""
-    n = np.asarray(normals_world)
-    if n.ndim != 3 or n.shape[2] != 3:
-        raise ValueError(f"normals must be (H, W, 3), got {n.shape}")
-    return n @ camera.R.T

@@ -111,7 +111,7 @@ class StandInRenderer:
 
 
 class IBRRenderer:
-    """The real low-resolution renderer: leave-one-out renders with issue #7's IBRModel.
+    """The real low-resolution renderer: leave-one-out renders with render/ibr.py's IBRModel.
 
     `excluding({name: more views})` (`nearest_views`): the same model, leaving those views out of
     that view's render as well: renders from farther sources, with the artefacts of a view off the

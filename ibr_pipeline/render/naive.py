@@ -1,4 +1,4 @@
-"""The naïve diffuse-warp baseline (issue #10): captured images warped with the surface depth only.
+"""The naïve diffuse-warp baseline: captured images warped with the surface depth only.
 
 For a new camera, every pixel's surface point comes from ray casting the global mesh G
 (`global/mesh.ply`); it takes the colour of the captured view nearest to the new camera by Xu et al.

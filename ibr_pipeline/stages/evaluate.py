@@ -38,7 +38,7 @@ class EvaluateConfig(StageConfig):
     oracle: bool = param(True, "render the GT-built oracle representation (synthetic inputs)")
     fps: float = param(24.0, "fly-through video frame rate", min=1.0, max=240.0)
     naive: bool = param(True, "score the naïve diffuse-warp baseline (nearest captured view "
-                        "warped with the global mesh's depth; issue #10)")
+                        "warped with the global mesh's depth)")
 
 
 def _set_cameras(ctx: StageContext, s: str) -> dict:

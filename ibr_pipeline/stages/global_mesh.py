@@ -59,9 +59,10 @@ class GlobalMeshConfig(StageConfig):
                                       min=0.1, max=20.0)
     mvs_depth_min: float = param(0.3, "MVS depth range when there are no SfM points", min=1e-3, max=1e4)
     mvs_depth_max: float = param(8.0, "MVS depth range when there are no SfM points", min=1e-3, max=1e4)
-    device: str = param("cpu", "torch device for MVS", choices=("cpu", "cuda"))
-    threads: int = param(1, "threads for pycolmap and for torch (MVS on CPU)", min=1, max=256)
-    progress: bool = param(True, "show progress bars")
+    device: str = param("cpu", "torch device for MVS", choices=("cpu", "cuda"), affects_output=False)
+    threads: int = param(1, "threads for pycolmap and for torch (MVS on CPU)", min=1, max=256,
+                         affects_output=False)
+    progress: bool = param(True, "show progress bars", affects_output=False)
 
     def check(self, prefix: str) -> None:
         if self.mvs_window % 2 == 0:

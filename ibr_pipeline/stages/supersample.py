@@ -1,7 +1,7 @@
 """Stage `supersample`: train DSRNet on the scene's own capture views (Xu et al. §5.2, §6).
 
 Leave-one-out renders of the registered capture views at 1/scale resolution (the real renderer of
-`render_views`, issue #7: `render.ibr.IBRModel`, rendering each view without itself) are paired
+`render_views`, render/low_res.py's IBRRenderer: each view rendered without itself) are paired
 with the captured full-resolution images; consecutive capture views give the previous frame;
 90 % / 10 % split (§6), the validation views are never trained on. Writes the trained network
 `nn/dsrnet.pt` (read by `nn.infer.SuperSampler`, `ibr render --supersample`), `nn/train.json`

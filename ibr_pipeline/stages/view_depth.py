@@ -36,69 +36,58 @@ class ViewDepthConfig(StageConfig):
                                  "estimates agree within this fraction (Xu §4.2.2: 5 per cent)", min=0.001, max=1.0)
     mvs_min_consistent: int = param(1, "source views that must agree (geometric stage)", min=1, max=16)
     mvs_check: str = param("near", "geometric check of the MVS depth against G in the source views: "
-                           "'near' = a G depth within mvs_agree_rel within mvs_check_radius px of "
-                           "the projection (tolerates G's misplaced edges); 'roundtrip' = strict "
-                           "forward-backward check (version 1)", choices=("near", "roundtrip"))
+                           "'near' = G agrees within mvs_agree_rel somewhere within "
+                           "mvs_check_radius px of the projection (tolerates G's misplaced edges); "
+                           "'roundtrip' = a strict forward-backward check", choices=("near", "roundtrip"))
     mvs_check_radius: int = param(1, "pixel tolerance of the 'near' check (pixels at 320x240, "
                                   "scaled with the image width)", min=0, max=8)
     mvs_min_change: float = param(1.5, "keep G's depth where the MVS depth differs from it by at most "
                                   "this many Eq. 1 lambdas (MVS is noisier than G on surfaces); "
                                   "0 = off", min=0.0, max=100.0)
     mvs_edge_guard: int = param(3, "drop MVS depths within this many pixels (at 320x240, scaled "
-                                "with the image width) of an Eq. 1 edge inside the MVS depth (NCC "
-                                "windows straddling two surfaces; Eq. 2 refills them along colour "
-                                "edges); 0 = off", min=0, max=32)
+                                "with the image width) of an Eq. 1 edge of the MVS depth, where NCC "
+                                "windows straddle two surfaces; 0 = off", min=0, max=32)
     neighbours: int = param(4, "Eq. 2: geodesically nearest pixels outside the mask (Xu: 4)", min=1, max=16)
     cost_base: float = param(0.05, "geodesic cost per pixel step on a flat colour region", min=1e-4, max=10.0)
     cost_edge: float = param(15.0, "extra geodesic cost per pixel step across a full-strength colour "
                              "edge (w = exp(-d_g), Eq. 2)", min=0.0, max=1000.0)
-    edge_boundary_radius: int = param(4, "Eq. 2 cost map: weight each colour edge by the oriented "
-                                      "half-disc colour gradient of this radius (pixels at 320x240, "
-                                      "scaled with the width; Martin et al. 2004), so texture inside a "
-                                      "surface is cheap to cross and outlines are not (our model-free "
-                                      "stand-in for the paper's structured-forest boundaries; "
-                                      "geometry/geodesic.py); 0 = plain Sobel + Canny (version 4)",
+    edge_boundary_radius: int = param(4, "Eq. 2 cost map: weight colour edges by the oriented "
+                                      "half-disc gradient of this radius (pixels at 320x240, scaled "
+                                      "with the width), so texture is cheap to cross and outlines are "
+                                      "not: our stand-in for the paper's structured-forest "
+                                      "boundaries (geometry/geodesic.py); 0 = plain Sobel + Canny",
                                       min=0, max=32)
-    edge_barrier: bool = param(False, "Eq. 2 cost map: add the Eq. 1 depth edges of the depth "
-                               "entering Eq. 2 (G after the MVS step) like user strokes, so the "
-                               "interpolation does not take neighbours from across an occlusion "
-                               "edge whose sides have similar colours (an addition to Xu §4.2.2). "
-                               "Off: it also pins the edge to G's misplaced one (sample: band "
-                               "-35.5 -> -25.8 %, recall 79.4 -> 75.6 %; elsewhere 3.31 -> 3.08 mm; "
-                               "docs/VIEW_DEPTH.md)")
-    rounded_steps: bool = param(True, "also refine steps G has rounded into ramps (Eq. 1's planar "
-                                "distance between pixels 2s apart, parallel planes, at a colour "
-                                "edge: geometry/depth_rounded.py; an addition to Xu §4.2.1)")
-    rounded_strides: tuple[int, ...] = param((2, 3, 4), "half distances s of the rounded-step test "
-                                             "(pixels at 320x240 on a 2 cm-voxel G, scaled with the image "
-                                             "width x G's voxel size: ramp_scale)")
-    g_trust: str = param("far", "where G's depth is trusted inside the mask (ours): 'far' = every mask "
-                         "pixel farther than g_trust_px from G's own Eq. 1 edges between two "
-                         "surfaces and its rounded steps keeps G's depth and is not swept (version "
-                         "5: the 5 per cent check "
-                         "let MVS depths centimetres off through there, and Eq. 2 spread them); "
-                         "'confirmed' = only where the MVS confirmed G, against the guard (version "
-                         "4); 'none' = version 3", choices=("far", "confirmed", "none"))
-    g_trust_px: int = param(0, "g_trust 'far': distance from G's edges and rounded steps beyond which "
-                            "G is trusted, pixels on a 2 cm-voxel G at 320x240 / 1 cm at 640x480 "
-                            "(times width x voxel relative to those, ramp_ratio, otherwise: 0.5 for "
-                            "a 5 mm G at 640x480); 0 = automatic: 6 px below 480 px wide, "
-                            "4 px from 480 (a sweep, docs/VIEW_DEPTH.md: the finer image's MVS "
-                            "corrects closer to G's edges)", min=0, max=64)
-    ramp_zone_px: int = param(8, "within this distance of a rounded step (pixels at 320x240 on a 2 cm-"
-                              "voxel G, times ramp_ratio) G's depth is not kept even where the MVS "
-                              "confirms it within mvs_min_change lambda (a ramp of a 1-3 lambda step "
-                              "is within that of both plateaus): Eq. 2 re-interpolates it from the "
-                              "plateaus along colour edges (version 5, ours); 0 = off", min=0, max=64)
+    edge_barrier: bool = param(False, "Eq. 2 cost map: add the Eq. 1 depth edges of G after the MVS "
+                               "step as barriers, like user strokes (our addition). Off by default: "
+                               "it also pins the edge to G's misplaced one (docs/VIEW_DEPTH.md)")
+    rounded_steps: bool = param(True, "also refine steps G has rounded into ramps "
+                                "(geometry/depth_rounded.py; our addition to Xu §4.2.1)")
+    rounded_strides: tuple[int, ...] = param((2, 3, 4), "half distances s of the rounded-step test, "
+                                             "pixels at 320x240 on a 2 cm-voxel G (scaled with width "
+                                             "x voxel: ramp_scale)")
+    g_trust: str = param("far", "where G's depth is trusted inside the mask (ours): 'far' = kept "
+                         "without a sweep farther than g_trust_px from G's own Eq. 1 edges and "
+                         "rounded steps; 'confirmed' = kept only where the MVS confirms it, and "
+                         "then safe from mvs_edge_guard; 'none' = neither (docs/VIEW_DEPTH.md)",
+                         choices=("far", "confirmed", "none"))
+    g_trust_px: int = param(0, "the distance of g_trust 'far', pixels at 320x240 on a 2 cm-voxel G "
+                            "(scaled: ramp_ratio); 0 = automatic, 6 px below 480 px wide, else 4 "
+                            "(g_trust_auto)", min=0, max=64)
+    ramp_zone_px: int = param(8, "within this distance of a rounded step (pixels at 320x240 on a "
+                              "2 cm-voxel G, scaled: ramp_ratio) G's depth is not kept even where "
+                              "the MVS confirms it, so Eq. 2 re-interpolates the ramp from the "
+                              "plateaus (ours); 0 = off", min=0, max=64)
     rounded_min_rel: float = param(1.0, "rounded-step test threshold, fraction of Eq. 1's lambda",
                                    min=0.1, max=10.0)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
                              "(<image stem>.png, white = edge)")
-    device: str = param("cpu", "torch device for the plane sweep", choices=("cpu", "cuda"))
-    threads: int = param(1, "torch/OpenCV threads inside one view (views already run in parallel "
-                         "with --jobs; more threads per worker oversubscribe the cores: 5x slower "
-                         "on a loaded 2-core machine)", min=1, max=64)
-    progress: bool = param(False, "progress bars inside a view (the runner shows one per view)")
+    device: str = param("cpu", "torch device for the plane sweep", choices=("cpu", "cuda"),
+                        affects_output=False)
+    threads: int = param(1, "torch / OpenCV threads inside one view (views already run in parallel "
+                         "with --jobs: more threads per worker oversubscribe the cores)", min=1,
+                         max=64, affects_output=False)
+    progress: bool = param(False, "progress bars inside a view (the runner shows one per view)",
+                           affects_output=False)
 
     def check(self, prefix: str) -> None:
         from ..errors import ConfigError
@@ -135,7 +124,7 @@ def ramp_scale(width: int, g_voxel: float) -> int:
 
 def ramp_ratio(width: int, g_voxel: float) -> float:
     """Unrounded width x G's voxel relative to the 2 cm G at 320x240: the factor for the trust
-    distance and the ramp zone (version 6). Unlike `ramp_scale` (integer strides, at least 1) it
+    distance and the ramp zone. Unlike `ramp_scale` (integer strides, at least 1) it
     goes below 1 for a G finer than 1 cm at 640x480, whose edges are misplaced and rounded over
     proportionally fewer pixels: a 5 mm G at 640x480 gives 0.5. It is exactly 1 for the two
     configurations the distances were tuned on (2 cm at 320x240, 1 cm at 640x480)."""
@@ -149,7 +138,7 @@ def g_trust_auto(width: int) -> int:
 
 
 def _g_voxel(ws) -> float:
-    """G's TSDF voxel size from global/report.json (global_mesh version 3), else the old 2 cm; also
+    """G's TSDF voxel size from global/report.json, else the 2 cm the distances were tuned on; also
     2 cm when G is in SfM units (no depth, no scale), where the voxel is no length in metres."""
     import json
     try:

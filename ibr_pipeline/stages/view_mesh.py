@@ -1,7 +1,7 @@
 """Stage `view_mesh` (Xu et al. §4.2.3), per view: the refined depth as a pixel-grid mesh (two
 triangles per pixel square, cut along Eq. 1 occlusion edges), quadric-simplified with
-fast-simplification (border preserved, so the cuts survive) to no more vertices than the view needs;
-version 3 first merges planar blocks of pixel squares (geometry/grid_faces.py), ~5x less input.
+fast-simplification (border preserved, so the cuts survive) to no more vertices than the view needs,
+after a planar pre-merge of blocks of pixel squares (geometry/grid_faces.py: ~5x less input).
 Mathematics: geometry/grid_mesh.py.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from .common import registered_views
 class ViewMeshConfig(StageConfig):
     max_vertices_640x480: int = param(20000, "vertex budget per view, scaled by pixel count from "
                                       "640x480 (Xu §4.2.3: < 40 000 vertices on average; 20 000 = "
-                                      "~10k triangles at 320x240, the renderer's (#7) frame-time "
+                                      "~10k triangles at 320x240, the renderer's frame-time "
                                       "budget)",
                                       min=100, max=10_000_000)
     min_vertices: int = param(200, "never simplify below this many vertices", min=3, max=1_000_000)
@@ -62,7 +62,7 @@ def run(ctx: StageContext, view: str) -> None:
     N = normals_from_points(P, depth > 0)
     pairs = de.depth_edges(P, N, depth, cfg.lambda_rel)  # cuts: Eq. 1 pairs of the refined depth
     # the grid mesh's own depth is known exactly (vertices at the pixel centres): no ray cast of
-    # its ~600 k triangles at 640x480 for the base score (version 2: the stage's largest cost)
+    # its ~600 k triangles at 640x480 for the base score (that ray cast was the stage's largest cost)
     v, f, grid_depth, premerge = grid_mesh(depth, cam, pairs, return_depth=True,
                                            premerge_tol=cfg.premerge_tol)
     budget = max(cfg.min_vertices, int(round(cfg.max_vertices_640x480 * cam.width * cam.height / (640 * 480))))

@@ -1,7 +1,7 @@
 """Synthetic test cases for the ray-tree warper (raytree/): a ray tree traced at an old camera, the
 exact render at a new camera, and ground-truth masks (for tests and the raytree benchmark).
 
-Cases (the issue's "planar mirror, chrome sphere, refractive slab/sphere"):
+Cases (a planar mirror, a chrome sphere, refractive slab / sphere):
   mirror   mirror_room: the wall mirror (planar, kr 1)
   chrome   curved: the chrome sphere (kr 0.85)
   crystal  curved: the crystal sphere (dielectric, IOR 1.5, tinted)

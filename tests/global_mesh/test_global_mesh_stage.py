@@ -41,7 +41,7 @@ def test_rgbd_fusion_with_reflectors_is_accurate(tiny_scene, tmp_path):
     for f in ("sfm/cameras.txt", "sfm/images.txt", "global/cameras.json"):
         assert (ws / f).is_file()
     res = _evaluate(ws, scene_dir)
-    assert res["fscore"] >= 0.90, res          # issue #4: F-score at 5 cm >= 0.90 with RGB-D
+    assert res["fscore"] >= 0.90, res          # F-score at 5 cm >= 0.90 with RGB-D
     assert res["mirror_world_fraction"] < 0.01, res
 
 

@@ -45,7 +45,7 @@ def test_masked_sweep_computes_only_the_mask_and_agrees(sample):
     cams, img, gt = sample
     src = ["0004.png", "0006.png"]
     d = gt["0005.png"]["depth"]
-    lo, hi = d * 0.9, d * 1.1  # per-pixel search band around an initial depth (issue #5's use)
+    lo, hi = d * 0.9, d * 1.1  # per-pixel search band around an initial depth (view_depth's use)
     mask = np.zeros(d.shape, bool)
     mask[100:110, 40:280] = True
     args = (img["0005.png"], cams["0005.png"], [img[s] for s in src], [cams[s] for s in src], lo, hi)

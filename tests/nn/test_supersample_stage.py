@@ -1,7 +1,8 @@
 """Stage `supersample` through the CLI/runner, SuperSampler, and bad input.
 
-The stage's real low-res renderer is issue #7's IBR model; these tests use `--renderer standin`
-(synthetic GT with IBR-like artefacts), because the stage must be testable without #7."""
+The stage's real low-res renderer is the render_views IBR model; these tests use `--renderer
+standin` (synthetic GT with IBR-like artefacts), so the stage is tested without the stages before
+it."""
 import json
 import shutil
 
@@ -71,7 +72,7 @@ def test_bad_config_and_missing_inputs_write_nothing(ws, capsys):
 
 
 def test_real_renderer_needs_view_meshes(ws):
-    """With the default renderer (issue #7's IBR model) the stage needs the per-view meshes and
+    """With the default renderer (the render_views IBR model) the stage needs the per-view meshes and
     edges: without them it is blocked (missing input) and writes nothing."""
     rc = main(["supersample", str(ws), "--train.steps", "2", "--no-progress"])
     assert rc != 0

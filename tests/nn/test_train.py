@@ -1,8 +1,8 @@
 """Training loop: determinism with a seed, exact resume from a checkpoint, budget, loss curve,
 and the accuracy property: DSRNet beats bicubic upsampling of the same low-res input.
 
-Data: the STAND-IN low-res renderer (ground truth with IBR-like artefacts, nn/data.py), since the
-real renderer (issue #7) may not exist yet."""
+Data: the STAND-IN low-res renderer (ground truth with IBR-like artefacts, render/low_res.py):
+the tests of the loop need no reconstruction stages before it."""
 import dataclasses
 
 import numpy as np

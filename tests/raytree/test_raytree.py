@@ -1,4 +1,4 @@
-"""Tests of ibr_pipeline.raytree (issue #9, Lochmann et al. 2014) against synthetic ground truth."""
+"""Tests of ibr_pipeline.raytree (Lochmann et al. 2014) against synthetic ground truth."""
 from __future__ import annotations
 
 import math

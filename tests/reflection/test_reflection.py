@@ -1,4 +1,4 @@
-"""Tests of stage `reflection` (issue #6, Xu et al. §4.3) against synthetic ground truth."""
+"""Tests of stage `reflection` (Xu et al. §4.3) against synthetic ground truth."""
 from __future__ import annotations
 
 import json

@@ -80,7 +80,7 @@ def test_heldout_views_against_ground_truth(tiny):
         frame = model.render(cam)
         ref = read_image(root / "gt" / "test" / "images" / name)
         assert frame.color.shape == ref.shape and np.isfinite(frame.color).all()
-        # covered wherever a selected view saw the surface (issue #7), from GT depth and cameras
+        # covered wherever a selected view saw the surface, from GT depth and cameras
         seen = _seen_by(root, name, cam, frame.selected)
         assert seen.mean() > 0.3
         assert frame.covered[seen].mean() > 0.97

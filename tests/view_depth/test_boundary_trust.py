@@ -1,4 +1,4 @@
-"""Issue #5, view_depth version 5: the texture-suppressing boundary weight of Eq. 2's colour-edge
+"""view_depth: the texture-suppressing boundary weight of Eq. 2's colour-edge
 cost map (`geodesic.boundary_strength`, half-disc colour gradient) and the masked MVS's `trust_g`
 (mask pixels far from G's own edges keep G's depth and are not swept)."""
 from __future__ import annotations
