@@ -14,7 +14,7 @@ help:
 	@echo "make test-slow  install, then run only the slow tests"
 	@echo "make install    system libraries (apt-get, when missing) + virtualenv $(VENV)"
 	@echo "make demo-full  the same on a full-size (640x480, 120 views) synthetic scene"
-	@echo "make bench      install, then ibr bench mirror_room --stability (charts in $(OUT)/bench)"
+	@echo "make bench      install, then ibr bench pipeline mirror_room --stability (charts in $(OUT)/bench)"
 
 install: $(STAMP)
 
@@ -50,7 +50,7 @@ demo-full: install
 	$(BIN)/ibr report $(OUT)/full_rgbd640
 
 bench: install
-	$(BIN)/ibr bench mirror_room --stability --out $(OUT)/bench
+	$(BIN)/ibr bench pipeline mirror_room --stability --out $(OUT)/bench
 
 clean-demo:
 	rm -rf $(OUT)/demo

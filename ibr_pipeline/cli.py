@@ -30,11 +30,11 @@ exit codes: 0 ok, 1 a stage failed, 2 bad input."""
 # Commands beyond the stages (ibr_pipeline/commands/): each module's `register(sub)` adds its
 # subparsers with a `func` (args -> exit code) and imports nothing heavy, so `ibr --help` is fast.
 COMMAND_MODULES = (
-    "ibr_pipeline.commands.synth",    # ibr synth, ibr synth-bench
+    "ibr_pipeline.commands.synth",    # ibr synth
     "ibr_pipeline.commands.render",   # ibr render
     "ibr_pipeline.commands.warp",     # ibr warp
     "ibr_pipeline.commands.report",   # ibr report
-    "ibr_pipeline.bench.cli",         # ibr bench
+    "ibr_pipeline.commands.bench",    # ibr bench NAME (benchmarks/)
 )
 
 

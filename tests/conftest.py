@@ -10,6 +10,7 @@ TESTS = Path(__file__).parent
 os.environ["PYTHONPATH"] = os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
 if str(TESTS) not in sys.path:
     sys.path.insert(0, str(TESTS))
+sys.path.insert(1, str(TESTS.parent))  # the repo root, for the top-level benchmarks/ package
 
 from toy_stages import make_toy_workspace  # noqa: E402  (needs the path above)
 

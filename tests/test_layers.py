@@ -17,12 +17,14 @@ LAYERS = {
     "algorithms": {"render", "raytree", "nn"},
     "synthetic": {"synthetic"},
     "orchestration": {"runner", "executors", "pipeline", "stages", "gt_workspace", "report"},
-    "cli": {"cli", "commands", "__main__", "__init__", "bench"},
+    "cli": {"cli", "commands", "__main__", "__init__"},
 }
 ORDER = list(LAYERS)
 LAYER_OF = {name: layer for layer, names in LAYERS.items() for name in names}
 # algorithm packages are siblings: none imports another (geometry is below all of them)
 SIBLINGS_INDEPENDENT = {"algorithms"}
+# the one module that reaches the top-level benchmarks/ package (`ibr bench NAME`)
+BENCH_COMMAND = "ibr_pipeline.commands.bench"
 
 
 def _modules() -> dict[str, Path]:
@@ -80,7 +82,8 @@ def test_no_module_imports_a_higher_layer_or_a_sibling_algorithm():
         src = LAYER_OF[_top(mod)]
         for t in targets:
             if t.split(".")[0] == "benchmarks":
-                bad.append(f"{mod} -> {t} (the package never imports benchmarks/)")
+                if mod != BENCH_COMMAND:
+                    bad.append(f"{mod} -> {t} (only {BENCH_COMMAND} imports benchmarks/)")
                 continue
             dst = LAYER_OF[_top(t)]
             if ORDER.index(dst) > ORDER.index(src):

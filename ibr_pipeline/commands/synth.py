@@ -1,4 +1,4 @@
-"""`ibr synth NAME OUT` (a synthetic scene with exact ground truth) and `ibr synth-bench`."""
+"""`ibr synth NAME OUT`: a synthetic scene with exact ground truth."""
 from __future__ import annotations
 
 import argparse
@@ -13,9 +13,6 @@ def register(sub) -> None:
     p = sub.add_parser("synth", help="generate a synthetic scene with exact ground truth")
     add_synth_arguments(p)
     p.set_defaults(func=synth_main)
-    p = sub.add_parser("synth-bench", help="benchmark synthetic scene generation")
-    add_bench_arguments(p)
-    p.set_defaults(func=bench_main)
 
 
 def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
@@ -65,36 +62,4 @@ def synth_main(args: argparse.Namespace) -> int:
     opts = _options(args)
     opts.validate()  # before touching OUT
     generate(opts, Path(args.out))
-    return 0
-
-
-def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("names", metavar="NAME", nargs="*", default=["tiny", "mirror_room"],
-                        help="scenes to time (default: tiny mirror_room); each at its default "
-                             "size unless --width/--height/--views are given")
-    parser.add_argument("--repeats", type=int, default=3,
-                        help="runs per scene; the median is reported (default 3)")
-    parser.add_argument("--width", type=int, default=None, help="override the image width")
-    parser.add_argument("--height", type=int, default=None, help="override the image height")
-    parser.add_argument("--views", type=int, default=None, help="override the number of views")
-    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
-    parser.add_argument("--jobs", type=int, default=None,
-                        help="worker processes (default: min(2, CPU count))")
-    parser.add_argument("--output", type=Path, default=Path("synth_bench.jsonl"),
-                        help="JSON-lines file the results are appended to (default synth_bench.jsonl)")
-    parser.add_argument("--workdir", type=Path, default=None,
-                        help="where scenes are generated (default: a temporary folder, removed)")
-
-
-def bench_main(args: argparse.Namespace) -> int:
-    from ..synthetic.bench import run_bench
-
-    if args.repeats < 1:
-        raise InputError(f"--repeats must be >= 1, got {args.repeats}")
-    bad = [n for n in args.names if n not in SCENE_NAMES]
-    if bad:
-        raise InputError(f"NAME: unknown scene(s) {bad} (choose from {', '.join(SCENE_NAMES)})")
-    run_bench(args.names, repeats=args.repeats, width=args.width, height=args.height,
-              views=args.views, seed=args.seed, jobs=args.jobs, output=args.output,
-              workdir=args.workdir)
     return 0

@@ -1,10 +1,10 @@
-"""bench.dsrnet.error_breakdown (issue #8 diagnosis): region and band PSNRs on synthetic arrays."""
+"""benchmarks.dsrnet.error_breakdown: region and band PSNRs on synthetic arrays."""
 from types import SimpleNamespace
 
 import cv2
 import numpy as np
 
-from ibr_pipeline.bench.dsrnet import error_breakdown
+from benchmarks.dsrnet import error_breakdown
 
 
 def _sample(rng):

@@ -61,25 +61,25 @@ def test_reflectance_cue_recovers_beta_and_rejects_a_diffuse_plane():
 
 
 def test_rerender_two_layers_beats_the_unsplit_image():
-    """Bench `rerender` (issue #6 held-out item): with the true layers of view b, view a's pixels
+    """Bench `rerender` (held-out re-rendering): with the true layers of view b, view a's pixels
     are predicted by I0_b(w(u, M0)) + R_b(w(u, M1)) far better than by I_b(w(u, M0))."""
-    from ibr_pipeline.bench.reflection import _psnr
-    from ibr_pipeline.bench.reflection_heldout import rerender
+    from benchmarks.reflection_heldout import rerender
+    from ibr_pipeline.metrics import psnr
     beta = 0.3
     (a, b), cols = _scene(beta)
     got = rerender(a, b, beta * cols["b"])
     assert got is not None
     tgt, lay, uns, _, cover = got
     assert cover > 0.5
-    assert _psnr(lay, tgt) > 33 and _psnr(lay, tgt) > _psnr(uns, tgt) + 10, (_psnr(lay, tgt), _psnr(uns, tgt))
+    assert psnr(lay, tgt) > 33 and psnr(lay, tgt) > psnr(uns, tgt) + 10, (psnr(lay, tgt), psnr(uns, tgt))
 
 
 def test_predict_perfect_reflection_bounds_the_gain():
     """Bench `predict`: a perfect reflection layer (k's surface layer + t's own reflection) is at
     least as good as k's true layers here, and on a diffuse plane (beta = 0) no split can gain
     anything over the unsplit warp: the layered, unsplit and perfect-R predictions coincide."""
-    from ibr_pipeline.bench.reflection import _psnr
-    from ibr_pipeline.bench.reflection_heldout import predict
+    from benchmarks.reflection_heldout import predict
+    from ibr_pipeline.metrics import psnr
     for beta, min_gain in ((0.3, 10.0), (0.0, None)):
         (a, b), cols = _scene(beta)
         sel = a.mask & (a.D1 > 0)
@@ -87,7 +87,7 @@ def test_predict_perfect_reflection_bounds_the_gain():
                     own_r=(beta * cols["a"])[sel])
         ok = p["ok"]
         tgt = p["target"][ok]
-        ps = {k: _psnr(p[k][ok], tgt) for k in ("layers", "unsplit", "gt_layers", "perfect_r")}
+        ps = {k: psnr(p[k][ok], tgt) for k in ("layers", "unsplit", "gt_layers", "perfect_r")}
         assert np.all(p["layers"][~ok] == 0) and ok.mean() > 0.5
         if min_gain is None:
             assert np.allclose(p["layers"][ok], p["unsplit"][ok], atol=1e-12)
@@ -100,7 +100,7 @@ def test_predict_perfect_reflection_bounds_the_gain():
 def test_blend_predictions_normalises_over_valid_views():
     """The renderer-like blend: per pixel, the weighted mean over the views valid there (the same
     weights for every kind); pixels no view covers are left out."""
-    from ibr_pipeline.bench.reflection_heldout import blend_predictions
+    from benchmarks.reflection_heldout import blend_predictions
     n = 100
     tgt = np.full((n, 3), 0.5)
     ok1 = np.arange(n) < 70

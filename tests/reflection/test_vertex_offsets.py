@@ -215,11 +215,11 @@ def test_stage_writes_m1_moved_along_the_rays():
 
 
 def test_rerender_with_own_m1_offsets():
-    """bench.reflection_heldout.rerender_own: predicting view t from k's layers through k's own M1 is
+    """benchmarks.reflection_heldout.rerender_own: predicting view t from k's layers through k's own M1 is
     exact-ish for exact geometry, degraded by a 5 % bump in k's M1, and restored by the offsets
     that undo the bump (what the written M1.ply of k renders)."""
-    from ibr_pipeline.bench.reflection import _psnr
-    from ibr_pipeline.bench.reflection_heldout import rerender_own
+    from benchmarks.reflection_heldout import rerender_own
+    from ibr_pipeline.metrics import psnr
     k, nbs, D1_true = _scene(lambda u, v: 0.6 * _bump(u, v))  # 3 %: within the 5 % visibility test
     t = nbs[0]
     X1t = k.camera.center + (k.X1 - k.camera.center) * (D1_true / k.D1)[..., None]
@@ -230,10 +230,10 @@ def test_rerender_with_own_m1_offsets():
     k_exact = _scene()[0]
     tgt3, exact = rerender_own(t, k_exact, R_k, None)
     assert len(tgt) == len(tgt2) == len(tgt3) > 1000
-    assert _psnr(exact, tgt) > 38  # exact geometry: resampling error only
+    assert psnr(exact, tgt) > 38  # exact geometry: resampling error only
     # the offsets restore the exact geometry's prediction (to first order); the bump does not
-    assert _psnr(fixed, exact) > 45 and _psnr(fixed, exact) > _psnr(bumped, exact) + 6, (
-        _psnr(fixed, exact), _psnr(bumped, exact))
+    assert psnr(fixed, exact) > 45 and psnr(fixed, exact) > psnr(bumped, exact) + 6, (
+        psnr(fixed, exact), psnr(bumped, exact))
 
 
 # --- M0's vertices (the surface layer, through the a_q positions of E_d) -------------------------
@@ -359,10 +359,10 @@ def test_optimised_m0_moves_vertices_along_the_rays():
 
 
 def test_rerender_through_own_m0_offsets():
-    """bench.reflection_heldout.rerender_own with own_m0: the surface layer of k seen through t's pixels
+    """benchmarks.reflection_heldout.rerender_own with own_m0: the surface layer of k seen through t's pixels
     on k's own M0 -- degraded by a 3 % bump in k's M0, restored by the offsets undoing it."""
-    from ibr_pipeline.bench.reflection import _psnr
-    from ibr_pipeline.bench.reflection_heldout import rerender_own
+    from benchmarks.reflection_heldout import rerender_own
+    from ibr_pipeline.metrics import psnr
     k0, nbs, _ = _scene()
     k = _bumped_m0(k0, lambda u, v: 0.6 * _bump(u, v))
     t = nbs[0]
@@ -372,6 +372,6 @@ def test_rerender_through_own_m0_offsets():
     tgt2, fixed = rerender_own(t, k, R_k, None, m0_offset=undo, own_m0=True)
     tgt3, exact = rerender_own(t, k0, R_k, None, own_m0=True)
     assert len(tgt) == len(tgt2) == len(tgt3) > 1000
-    assert _psnr(exact, tgt3) > 38
-    assert _psnr(fixed, exact) > 45 and _psnr(fixed, exact) > _psnr(bumped, exact) + 6, (
-        _psnr(fixed, exact), _psnr(bumped, exact))
+    assert psnr(exact, tgt3) > 38
+    assert psnr(fixed, exact) > 45 and psnr(fixed, exact) > psnr(bumped, exact) + 6, (
+        psnr(fixed, exact), psnr(bumped, exact))

@@ -1,8 +1,7 @@
-"""`ibr synth` / `ibr synth-bench` argparse hooks."""
+"""`ibr synth` argparse hooks (its generation benchmark: tests/benchmarks/test_synth_bench.py)."""
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 
@@ -26,12 +25,11 @@ def test_cli_module_import_is_light():
 
 
 def test_every_flag_has_help():
-    for add in (cli.add_synth_arguments, cli.add_bench_arguments):
-        p = argparse.ArgumentParser()
-        add(p)
-        for action in p._actions:
-            if not isinstance(action, argparse._HelpAction):
-                assert action.help, action.dest
+    p = argparse.ArgumentParser()
+    cli.add_synth_arguments(p)
+    for action in p._actions:
+        if not isinstance(action, argparse._HelpAction):
+            assert action.help, action.dest
 
 
 @pytest.mark.parametrize("argv, flag", [
@@ -55,18 +53,10 @@ def test_unknown_scene():
         cli.synth_main(argparse.Namespace(name="nope", out="OUT"))
 
 
-def test_synth_main_and_bench(tmp_path):
+def test_synth_main(tmp_path):
     args = _parse(["tiny", str(tmp_path / "t"), "--views", "3", "--test-views", "1",
                    "--flythrough", "0", "--width", "64", "--height", "48", "--no-gt-layers",
                    "--no-progress"])
     assert cli.synth_main(args) == 0
     assert len(list((tmp_path / "t" / "images").glob("*.png"))) == 3
     assert not (tmp_path / "t" / "gt" / "I0").exists()
-    bargs = _parse(["tiny", "--repeats", "1", "--views", "2", "--width", "32", "--height", "24",
-                    "--output", str(tmp_path / "b.jsonl")], cli.add_bench_arguments)
-    assert cli.bench_main(bargs) == 0
-    rec = json.loads((tmp_path / "b.jsonl").read_text().splitlines()[-1])
-    assert rec["scene"] == "tiny" and rec["median_s"] > 0
-    assert {"cpu_count", "platform", "python"} <= set(rec["machine"])
-    with pytest.raises(InputError, match="--repeats"):
-        cli.bench_main(_parse(["tiny", "--repeats", "0"], cli.add_bench_arguments))

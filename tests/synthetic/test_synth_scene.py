@@ -22,7 +22,7 @@ def _gray8(path: Path) -> np.ndarray:
 
 
 def test_tiny_is_complete(tiny_scene):
-    # (its speed is measured by `ibr synth-bench`, not asserted here: see docs/BENCHMARKS.md)
+    # (its speed is measured by `ibr bench synth`, not asserted here: see docs/BENCHMARKS.md)
     root, summary, _ = tiny_scene
     scene = read_input(root)
     assert scene.source == "colmap" and len(scene.views) == 8

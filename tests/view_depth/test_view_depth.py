@@ -275,12 +275,12 @@ def test_stages_run_through_cli(tiny_ws, tiny_scene, tmp_path):
         assert json.loads((vd / "depth_report.json").read_text())["pixel_scale"] == pixel_scale(cam.width)
     assert checked >= 2
     # the bench's simplification sweep covers 6 views (it counted rows, i.e. one view, before)
-    from ibr_pipeline.bench.view_depth import evaluate
+    from benchmarks.view_depth import evaluate
     out = evaluate(tiny_scene[0], tiny_ws, sweep=(100, 200))
     assert len({r["view"] for r in out["sweep"]}) >= min(6, checked)
     assert out["summary"]["depth_cpu_ms_median"] > 0
     # the examples figure: distinct views, one labelled row each, a PNG of three rows
-    from ibr_pipeline.bench.view_depth import examples, pick_examples
+    from benchmarks.view_depth import examples, pick_examples
     picks = pick_examples(out["views"])
     assert 1 <= len(picks) <= 3 and len({v for v, _ in picks}) == len(picks)
     assert all(t.startswith(v) for v, t in picks)

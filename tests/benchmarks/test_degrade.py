@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from ibr_pipeline.bench.degrade import degrade_input
+from benchmarks.degrade import degrade_input
 from ibr_pipeline.errors import InputError
 from ibr_pipeline.io.images import read_depth_png, read_image
 from ibr_pipeline.io.inputs import read_input

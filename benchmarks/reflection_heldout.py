@@ -1,9 +1,9 @@
-"""Held-out re-rendering of the reflection benchmark (issue #6's "re-rendering both layers at a
-held-out neighbour view beats warping the unsplit image ... by >= 5 dB"): predictions of a view t
+"""Held-out re-rendering of the reflection benchmark (target: re-rendering both layers at a
+held-out neighbour view beats warping the unsplit image by >= 5 dB): predictions of a view t
 from a neighbour k's layers (`predict`, `rerender`, through k's own M0/M1: `rerender_own`), the
 renderer-like blend of the neighbours' predictions, the perfect-reflection-layer ceiling, and the
-`heldout` driver used by `python -m ibr_pipeline.bench.reflection --heldout`
-(docs/REFLECTION.md, "Held-out re-rendering")."""
+`heldout` driver used by `ibr bench reflection --heldout` (docs/REFLECTION.md, "Held-out
+re-rendering")."""
 from __future__ import annotations
 
 import time
@@ -11,17 +11,30 @@ from pathlib import Path
 
 import numpy as np
 
-from .reflection import _forget_passes, _loader, _psnr, read_gt
+from ibr_pipeline.metrics import psnr
+
+from .reflection import forget_passes, make_loader
+
+
+def mask_at(mask: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """`mask` at the nearest pixel of each (x, y) in `pos`; False outside the image or at NaN."""
+    H, W = mask.shape[:2]
+    x = np.rint(np.nan_to_num(pos[..., 0], nan=-1)).astype(np.int64)
+    y = np.rint(np.nan_to_num(pos[..., 1], nan=-1)).astype(np.int64)
+    inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+    out = np.zeros(pos.shape[:-1], bool)
+    out[inside] = mask[y[inside], x[inside]]
+    return out
 
 
 def _visible_in_k(tg, kg, tol: float):
     """t's reflector pixels (sel) whose surface point (a) and mirror-world point (b) are both seen
     by k, inside k's reflector mask, by the depth tests (ok)."""
-    from ..geometry.decompose_terms import _nearest, depth_consistent, project
+    from ibr_pipeline.geometry.decompose_terms import depth_consistent, project
     sel = tg.mask & (tg.D1 > 0)
     a, za = project(kg.camera, tg.X0[sel])
     b, zb = project(kg.camera, tg.X1[sel])
-    ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
+    ok = depth_consistent(kg.depth, a, za, tol) & mask_at(kg.mask, a)
     ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
     return sel, a, b, ok
 
@@ -35,7 +48,7 @@ def predict(tg, kg, R_k, tol: float = 0.05, layers=None, own_r=None) -> dict | N
     layer R_t (GT) on `sel`: `perfect_r` = I0_k(a) from `layers` + R_t, the prediction by a
     perfect reflection layer, whose error is the surface layer's resampling alone (the part both
     predictions share). None when fewer than 50 pixels are valid."""
-    from ..geometry.decompose_terms import sample_bilinear
+    from ibr_pipeline.geometry.decompose_terms import sample_bilinear
     sel, a, b, ok = _visible_in_k(tg, kg, tol)
     if ok.sum() < 50:
         return None
@@ -91,7 +104,7 @@ def blend_predictions(preds: list[dict], weights) -> dict | None:
 def view_weight_distance(t_cam, k_cam) -> float:
     """Eq. 14's d_k of capture view k for the novel view t (render/selection.py): what the
     renderer's Eq. 15 weights exp(-d_k / delta) are computed from."""
-    from ..render.selection import view_distance
+    from ibr_pipeline.render.selection import view_distance
     return float(view_distance(k_cam.viewing_direction[None], k_cam.center[None],
                                t_cam.viewing_direction, t_cam.center)[0])
 
@@ -99,8 +112,8 @@ def view_weight_distance(t_cam, k_cam) -> float:
 def _through_own(kg, X, centre, D, pos, offset):
     """Where k's own mesh of depth D (optionally offset, geometry_step.py) is seen along the rays
     centre -> X: pos + J (eps + delta(pos)), the first-order ray-surface intersection."""
-    from ..geometry.decompose_terms import sample_bilinear
-    from ..geometry.geometry_step import shift_jacobian
+    from ibr_pipeline.geometry.decompose_terms import sample_bilinear
+    from ibr_pipeline.geometry.geometry_step import shift_jacobian
     J, eps = shift_jacobian(kg.camera, X, X - centre, np.where(kg.mask, D, 0.0))
     dlt = 0.0 if offset is None else sample_bilinear(np.asarray(offset)[..., None], pos)[:, 0]
     return pos + J * (eps + dlt)[:, None]
@@ -113,7 +126,7 @@ def rerender_own(tg, kg, R_k, m1_offset=None, tol: float = 0.05, m0_offset=None,
     rendering M1.ply of k at t gives) and, with `own_m0`, the surface layer where k's own M0
     (optionally offset: M0.ply) is seen, instead of t's surface points. Returns (target,
     layered) or None."""
-    from ..geometry.decompose_terms import sample_bilinear
+    from ibr_pipeline.geometry.decompose_terms import sample_bilinear
     sel, a, b, ok = _visible_in_k(tg, kg, tol)
     if ok.sum() < 50:
         return None
@@ -139,11 +152,13 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
     Per pair (t, k) and, as render/ibr.py re-renders, per held-out view with the neighbours'
     predictions blended per pixel by the renderer's Eq. 15 weights (`blended_*`; the unsplit
     image blended with the same weights)."""
-    from ..config import build_config
-    from ..geometry.decompose_terms import pose_distance
-    from ..render.blend import view_weights
-    from ..geometry.reflection_views import ReflectionConfig, decompose_reflector
-    _, loader = _loader(ws, base, m1_noise)
+    from ibr_pipeline.config import build_config
+    from ibr_pipeline.geometry.decompose_terms import pose_distance
+    from ibr_pipeline.geometry.reflection_views import ReflectionConfig, decompose_reflector
+    from ibr_pipeline.render.blend import view_weights
+    from ibr_pipeline.render.oracle import GroundTruth
+    gt = GroundTruth(scene)
+    _, loader = make_loader(ws, base, m1_noise)
     cfg = build_config(ReflectionConfig, "reflection", base)
     opts = cfg.decompose
     names = list(loader.names)
@@ -154,10 +169,10 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
         seen = [n for n in names if loader.mask(n, refl).sum() >= cfg.min_mask_pixels]
         for t in seen:
             tg = loader.geom(t, refl)
-            t0_gt, t1_gt, tb_gt = read_gt(scene, t)
+            t0_gt, t1_gt, tb_gt = gt.layers(t)
             r_t = (tb_gt[..., None] * t1_gt)[tg.mask & (tg.D1 > 0)]
             loader.names = [n for n in names if n != t]
-            _forget_passes(loader)
+            forget_passes(loader)
             used, preds, dists = 0, [], []
             for k in sorted((k for k in seen if k != t),
                             key=lambda k: pose_distance(tg.camera, loader.geom(k, refl).camera)):
@@ -167,7 +182,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                 if "discarded" in info:
                     continue
                 kg = info["geom"]
-                g0, g1, gb = read_gt(scene, k)
+                g0, g1, gb = gt.layers(k)
                 got = predict(tg, kg, info["R"], opts.visibility_tol,
                               layers=(g0, gb[..., None] * g1), own_r=r_t)
                 if got is None:
@@ -183,7 +198,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                 d["pairs"].append({"heldout": t, "from": k, "pixels": len(tgt),
                                    "coverage": float(ok.mean()), "d_k": dists[-1],
                                    "pose_distance": pose_distance(tg.camera, kg.camera),
-                                   **{x: _psnr(y, tgt) for x, y in zip(kinds, (lay, uns, gtl, pr))}})
+                                   **{x: psnr(y, tgt) for x, y in zip(kinds, (lay, uns, gtl, pr))}})
                 m0o, m1o = info.get("m0_offset"), info.get("m1_offset")
                 own = []  # k's own M1 (and M0), before / after their offsets
                 if m1o is not None:
@@ -194,7 +209,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                 for key, o1, o0, m0 in own:
                     got = rerender_own(tg, kg, info["R"], o1, opts.visibility_tol, o0, m0)
                     if got is not None:
-                        d["pairs"][-1][key] = _psnr(got[1], got[0])
+                        d["pairs"][-1][key] = psnr(got[1], got[0])
                 d["se"] += [((x - tgt) ** 2).mean(1).sum() for x in (lay, uns, gtl, pr)]
                 d["n"] += len(tgt)
             w = view_weights(np.asarray(dists)) if dists else []
@@ -205,7 +220,7 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
                 d["views"].append({"heldout": t, "from": [p["from"] for p in d["pairs"][-used:]],
                                    "weights": [float(x) for x in w / np.sum(w)],
                                    "pixels": bl["n"],
-                                   **{x: _psnr(bl[x], tgt) for x in kinds}})
+                                   **{x: psnr(bl[x], tgt) for x in kinds}})
                 d["bse"] += [((bl[x] - tgt) ** 2).mean(1).sum() for x in kinds]
                 d["bn"] += bl["n"]
     loader.names = names

@@ -1,6 +1,6 @@
-"""Benchmark of the ray-tree warper (issue #9, Lochmann et al. 2014).
+"""Benchmark of the ray-tree warper (Lochmann et al. 2014).
 
-  python -m ibr_pipeline.bench.raytree [--cases mirror,chrome,crystal,pane] [--size 320x240]
+  ibr bench raytree [--cases mirror,chrome,crystal,pane] [--size 320x240]
          [--supersample 3] [--move 5 --yaw 3] [--speed-size 1280x720] [--repeats 5]
          [--device cpu|cuda] [--threads 2] [--backend auto|torch|numba] [--out out/bench_raytree]
          [--skip-speed]
@@ -28,6 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
+from ibr_pipeline.errors import InputError
+
+
+def _argv() -> list[str]:
+    """This run's benchmark arguments as typed (what follows `bench raytree` on the command line)."""
+    argv = sys.argv[1:]
+    for i in range(len(argv) - 1):
+        if argv[i:i + 2] == ["bench", "raytree"]:
+            return argv[i + 2:]
+    return argv
+
 
 def _size(s: str) -> tuple[int, int]:
     try:
@@ -41,11 +52,11 @@ def _size(s: str) -> tuple[int, int]:
 
 def accuracy(cases, size, supersample, move, yaw, device, out: Path, progress=True,
              figures: Path | None = None, backend: str = "auto") -> list[dict]:
-    from ..io.images import write_image
-    from ..metrics import psnr
-    from ..raytree.decode import DecodeOptions, decode
-    from ..synthetic.raytree_cases import make_case
-    from ..raytree.warp import WarpOptions, naive_warp, warp_decoded
+    from ibr_pipeline.io.images import write_image
+    from ibr_pipeline.metrics import psnr
+    from ibr_pipeline.raytree.decode import DecodeOptions, decode
+    from ibr_pipeline.raytree.warp import WarpOptions, naive_warp, warp_decoded
+    from ibr_pipeline.synthetic.raytree_cases import make_case
 
     rows, panels, hist = [], [], None
     for name in cases:
@@ -171,10 +182,10 @@ def speed_case(size, tree_file: Path | None = None):
     """(tree, new camera) of the chrome case at `size`: traced here, or read from `tree_file`
     (written by --save-speed-tree; lets the speed run happen on a machine without the tracer's
     open3d, e.g. a GPU box). The new camera is the same 5 cm / 3 degree move."""
-    from ..scene import moved_camera
-    from ..synthetic.raytree_cases import make_case
+    from ibr_pipeline.scene import moved_camera
+    from ibr_pipeline.synthetic.raytree_cases import make_case
     if tree_file is not None:
-        from ..raytree.encoding import read_tree
+        from ibr_pipeline.raytree.encoding import read_tree
         tree = read_tree(tree_file)
         return tree, moved_camera(tree.camera())
     c = make_case("chrome", *size, supersample=1)
@@ -189,10 +200,9 @@ def speed(size, repeats, device, tree_file: Path | None = None, backend: str = "
     frame of each first (numba compiles or loads its cached kernels there)."""
     import torch
 
-    from ..raytree.backend import numba_available, resolve
-
-    from ..raytree.decode import decode
-    from ..raytree.warp import WarpOptions, naive_warp, warp
+    from ibr_pipeline.raytree.backend import numba_available, resolve
+    from ibr_pipeline.raytree.decode import decode
+    from ibr_pipeline.raytree.warp import WarpOptions, naive_warp, warp
 
     tree, new = speed_case(size, tree_file)
     size = tree.size
@@ -246,54 +256,55 @@ def _sync(device) -> None:
         torch.cuda.synchronize()
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.raytree", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", default="mirror,chrome,crystal,pane")
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--cases", default="mirror,chrome,crystal,pane",
+                    help="comma-separated cases of synthetic.raytree_cases (default all four)")
     ap.add_argument("--scene", choices=("tiny", "mirror_room"), help="shortcut: tiny = mirror case at "
                     "160x120, no supersampling, 320x240 speed run; mirror_room = the defaults")
-    ap.add_argument("--size", type=_size, default=(320, 240))
+    ap.add_argument("--size", type=_size, default=(320, 240), help="accuracy size WxH (320x240)")
     ap.add_argument("--supersample", type=int, default=3, help="odd; anti-aliased renders (3)")
     ap.add_argument("--move", type=float, default=5.0, help="cm to the right (5)")
     ap.add_argument("--yaw", type=float, default=3.0, help="degrees (3)")
-    ap.add_argument("--speed-size", type=_size, default=(1280, 720))
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--speed-size", type=_size, default=(1280, 720), help="speed size WxH (1280x720)")
+    ap.add_argument("--repeats", type=int, default=5, help="timed frames (5)")
+    ap.add_argument("--device", default="cpu", help="torch device (cpu)")
     ap.add_argument("--threads", type=int, default=2, help="CPU threads of torch and numba (2; 0: default)")
     ap.add_argument("--backend", choices=("auto", "torch", "numba"), default="auto",
                     help="raytree backend (auto: numba on the CPU when installed, else torch)")
-    ap.add_argument("--out", type=Path, default=Path("out/bench_raytree"))
-    ap.add_argument("--skip-speed", action="store_true")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_raytree"),
+                    help="output folder (default out/bench_raytree)")
+    ap.add_argument("--skip-speed", action="store_true", help="accuracy only")
     ap.add_argument("--figures", type=Path, help="also write commit-sized raytree_fig7.png / "
                     "raytree_fig8.png here (e.g. docs/figures)")
-    ap.add_argument("--skip-accuracy", action="store_true")
+    ap.add_argument("--skip-accuracy", action="store_true", help="speed only")
     ap.add_argument("--speed-tree", type=Path, help="time this ray tree file instead of tracing the "
                     "chrome case (for machines without open3d)")
     ap.add_argument("--save-speed-tree", type=Path, help="write the traced speed case's tree here")
-    args = ap.parse_args(argv)
-    from ..raytree.backend import passive_omp_wait
+
+
+def main(args: argparse.Namespace) -> int:
+    from ibr_pipeline.raytree.backend import passive_omp_wait
     passive_omp_wait()   # before torch loads libgomp (see backend.passive_omp_wait)
     import torch
     if args.threads > 0:
-        from ..raytree.backend import set_threads
+        from ibr_pipeline.raytree.backend import set_threads
         set_threads(args.threads)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
-        print("error: --device cuda but CUDA is not available", file=sys.stderr)
-        return 2
+        raise InputError("bench raytree: --device cuda but CUDA is not available")
     if args.scene == "tiny":
         args.cases, args.size, args.supersample, args.speed_size = "mirror", (160, 120), 1, (320, 240)
     cases = [c for c in args.cases.split(",") if c]
-    from ..synthetic.raytree_cases import CASES
+    from ibr_pipeline.synthetic.raytree_cases import CASES
     bad = [c for c in cases if c not in CASES]
     if bad or args.supersample < 1 or args.supersample % 2 == 0 or args.repeats < 1:
-        print(f"error: bad --cases {bad} / --supersample (odd >= 1) / --repeats (>= 1)", file=sys.stderr)
-        return 2
-    result = {"command": "python -m ibr_pipeline.bench.raytree " + " ".join(argv or sys.argv[1:])}
+        raise InputError(f"bench raytree: bad --cases {bad} / --supersample (odd >= 1) / "
+                         "--repeats (>= 1)")
+    result = {"command": "ibr bench raytree " + " ".join(_argv())}
     if not args.skip_accuracy:
         result["accuracy"] = accuracy(cases, args.size, args.supersample, args.move, args.yaw,
                                       args.device, args.out, figures=args.figures, backend=args.backend)
     if args.save_speed_tree is not None:
-        from ..raytree.encoding import write_tree
+        from ibr_pipeline.raytree.encoding import write_tree
         write_tree(args.save_speed_tree, speed_case(args.speed_size)[0])
         print(f"wrote {args.save_speed_tree}")
     if not args.skip_speed:
@@ -303,7 +314,3 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "bench_raytree.json").write_text(json.dumps(result, indent=1))
     print(f"wrote {args.out / 'bench_raytree.json'}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

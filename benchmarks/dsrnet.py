@@ -1,7 +1,6 @@
-"""Benchmark of DSRNet (issue #8, Xu et al. §5.2, §6.2): accuracy against synthetic ground truth
-and speed.
+"""Benchmark of DSRNet (Xu et al. §5.2, §6.2): accuracy against synthetic ground truth and speed.
 
-    python -m ibr_pipeline.bench.dsrnet [--scene tiny|mirror_room | --folder SYNTH_DIR]
+    ibr bench dsrnet [--scene tiny|mirror_room | --folder SYNTH_DIR]
         [--steps 1200] [--time-budget 0] [--preset cpu|paper] [--device cpu|cuda|auto]
         [--no-ablation] [--sequence 12] [--repeats 5] [--out bench_dsrnet.json]
         [--workspace WS [--model WS/nn/dsrnet.pt [--model-no-mvr WS2/nn/dsrnet.pt]]]
@@ -10,7 +9,7 @@ and speed.
 Data: the STAND-IN low-res renderer (nn/data.py: ground truth + IBR-like artefacts), so the figures
 say what the network does with blur/misalignment/holes, not with real IBR renders. With
 `--workspace WS` (a workspace of a synthetic input after view_mesh, + reflection) the real
-leave-one-out renders of issue #7 (`render.ibr.IBRModel`) are used instead, for training,
+leave-one-out renders of the IBR renderer (`render.ibr.IBRModel`) are used instead, for training,
 validation, the full-resolution baseline and the dense sequence (ground truth from the tracer).
 `--model FILE` (with `--workspace`) trains nothing: it measures a trained network, e.g. the stage's
 own `WS/nn/dsrnet.pt`, on the same held-out views (the stage's split) against the full-resolution
@@ -36,33 +35,30 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-SAMPLE = Path(__file__).resolve().parents[2] / "sample_data" / "mirror_room"
+from ibr_pipeline.errors import InputError
 
 
 def _scene_folder(args) -> Path:
+    from .common import SAMPLE, tiny_scene
     if args.folder:
         return Path(args.folder)
     if args.scene == "mirror_room":
         return SAMPLE
-    from ..synthetic.generate import SynthOptions, generate
-    out = Path(tempfile.mkdtemp(prefix="bench_dsrnet_")) / "tiny"
-    generate(SynthOptions("tiny", seed=3, progress=False), out)
-    return out
+    return tiny_scene(Path(tempfile.mkdtemp(prefix="bench_dsrnet_")) / "tiny")
 
 
 def dense_sequence(folder: Path, n: int):
     """n consecutive frames of the scene's inner loop (`paths.inner_loop_path`: not on the capture path), traced
     with the synthetic ray tracer: [(name, camera, image, depth)]."""
-    from ..synthetic.paths import inner_loop_path
-    from ..synthetic.scenes import build_world
-    from ..synthetic.tracer import Tracer
+    from ibr_pipeline.synthetic.paths import inner_loop_path
+    from ibr_pipeline.synthetic.scenes import build_world
+    from ibr_pipeline.synthetic.tracer import Tracer
 
     meta = json.loads((folder / "gt/scene.json").read_text())
     o = meta["options"]
@@ -80,15 +76,15 @@ def dense_sequence(folder: Path, n: int):
 
 
 def _metrics(gt, img):
-    from .. import metrics
+    from ibr_pipeline import metrics
     return metrics.psnr(gt, img), metrics.ssim(gt, img)
 
 
 def _run_model(model, sample, device, self_ensemble: bool = False):
     import torch
 
-    from ..nn.data import to_tensors
-    from ..nn.infer import run_network
+    from ibr_pipeline.nn.data import to_tensors
+    from ibr_pipeline.nn.infer import run_network
     b = {k: v.to(device) for k, v in to_tensors([sample]).items()}
     with torch.no_grad():
         y = run_network(model, b["cur"], b["depth"], b["prev"], b["depth_prev"], b["flow"],
@@ -100,7 +96,7 @@ def evaluate_methods(samples, models: dict, full_res: dict, device, scale: int,
                      self_ensemble: bool = False) -> dict:
     """Per method: mean PSNR/SSIM over samples, plus per-frame outputs for flicker. With
     `self_ensemble`, every model is also measured as NAME_self_ensemble (nn.infer.run_network)."""
-    from ..nn.infer import upsample
+    from ibr_pipeline.nn.infer import upsample
     res, outs = {}, {}
     for s in samples:
         cands = {name: _run_model(m, s, device) for name, m in models.items()}
@@ -123,7 +119,7 @@ def evaluate_methods(samples, models: dict, full_res: dict, device, scale: int,
 
 
 def error_breakdown(samples, outs: dict, full_depth: dict, scale: int) -> dict:
-    """Where each method loses against the ground truth (issue #8 diagnosis), pooled over samples:
+    """Where each method loses against the ground truth, pooled over samples:
     PSNR of the mean squared error per region and per frequency band, and how good the inputs are.
 
     Regions of the full-resolution image: `depth_edges` (5x5 around a > 3 % jump of the
@@ -135,7 +131,7 @@ def error_breakdown(samples, outs: dict, full_depth: dict, scale: int) -> dict:
     full-resolution render, both against the area-downsampled ground truth."""
     import cv2
 
-    from ..nn.infer import upsample
+    from ibr_pipeline.nn.infer import upsample
 
     def area(img):
         h, w = img.shape[:2]
@@ -200,61 +196,61 @@ def flicker(outputs: list, gts: list) -> float:
     return float(np.mean(e)) if e else float("nan")
 
 
-def main(argv=None) -> int:
-    import torch
-
-    from ..nn.data import (capture_pairs, low_res_camera, make_sample, render_low_res,
-                           sequence_pairs, split_views)
-    from ..nn.infer import SuperSampler
-    from ..nn.model import count_parameters, cpu_threads, preset, resolve_device, torch_threads
-    from ..nn.train import TrainOptions, train
-    from ..render.low_res import StandInRenderer
-
-    ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.dsrnet", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", choices=("tiny", "mirror_room"), default="mirror_room")
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--scene", choices=("tiny", "mirror_room"), default="mirror_room",
+                    help="tiny: generated in a temporary folder; mirror_room: sample_data/ (default)")
     ap.add_argument("--folder", help="a synthetic scene folder (overrides --scene)")
     ap.add_argument("--workspace", help="a workspace after view_mesh (+ reflection) of a synthetic "
-                    "input: use the real leave-one-out renders of issue #7 instead of the stand-in")
+                    "input: use the real leave-one-out renders of the IBR renderer instead of the "
+                    "stand-in")
     ap.add_argument("--model", help="a trained DSRNet file (with --workspace): measure it, train "
                     "nothing (no ablation)")
     ap.add_argument("--model-no-mvr", help="with --model: a trained W/O MVR DSRNet file (the stage "
                     "with use_mvr=false), measured beside it")
     ap.add_argument("--capture-fraction", type=float, default=0.0,
                     help="share of training crops from capture pairs (0 = render pairs only)")
-    ap.add_argument("--preset", choices=("cpu", "paper"), default="cpu")
-    ap.add_argument("--steps", type=int, default=1200)
+    ap.add_argument("--preset", choices=("cpu", "paper"), default="cpu", help="network size (cpu)")
+    ap.add_argument("--steps", type=int, default=1200, help="training steps (1200)")
     ap.add_argument("--time-budget", type=float, default=0.0, help="training budget, s (0 = none)")
-    ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--crop", type=int, default=48)
-    ap.add_argument("--batch", type=int, default=4)
-    ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu")
-    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--lr", type=float, default=1e-3, help="learning rate (1e-3)")
+    ap.add_argument("--crop", type=int, default=48, help="training crop size, px (48)")
+    ap.add_argument("--batch", type=int, default=4, help="training batch size (4)")
+    ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu", help="torch device (cpu)")
+    ap.add_argument("--threads", type=int, default=0, help="CPU threads of torch (0: default)")
     ap.add_argument("--no-ablation", action="store_true", help="skip the W/O MVR training")
     ap.add_argument("--sequence", type=int, default=12, help="dense held-out frames (0 = none)")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=5, help="runs of the inference timing (5)")
     ap.add_argument("--infer-size", default="640x480", help="output size of the speed test")
     ap.add_argument("--self-ensemble", action="store_true",
                     help="also measure every net with the mirror-image self-ensemble (2 passes)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="bench_dsrnet.json")
-    args = ap.parse_args(argv)
+    ap.add_argument("--seed", type=int, default=0, help="stand-in renderer and training seed (0)")
+    ap.add_argument("--out", default="bench_dsrnet.json", help="JSON result (default bench_dsrnet.json)")
+
+
+def main(args: argparse.Namespace) -> int:
     if args.model and not args.workspace:
-        print("bench.dsrnet: --model needs --workspace", file=sys.stderr)
-        return 2
+        raise InputError("bench dsrnet: --model needs --workspace")
     if args.model_no_mvr and not args.model:
-        print("bench.dsrnet: --model-no-mvr needs --model", file=sys.stderr)
-        return 2
+        raise InputError("bench dsrnet: --model-no-mvr needs --model")
     if args.steps < 1 or args.repeats < 1 or args.sequence < 0:
-        print("bench.dsrnet: --steps/--repeats must be >= 1, --sequence >= 0", file=sys.stderr)
-        return 2
+        raise InputError("bench dsrnet: --steps/--repeats must be >= 1, --sequence >= 0")
+    import torch
+
+    from ibr_pipeline.nn.data import (capture_pairs, low_res_camera, make_sample, render_low_res,
+                                      sequence_pairs, split_views)
+    from ibr_pipeline.nn.infer import SuperSampler
+    from ibr_pipeline.nn.model import (count_parameters, cpu_threads, preset, resolve_device,
+                                       torch_threads)
+    from ibr_pipeline.nn.train import TrainOptions, train
+    from ibr_pipeline.render.low_res import StandInRenderer
+
     device = resolve_device(args.device)
     t0 = time.perf_counter()
     if args.workspace:
-        from ..io.images import read_image
-        from ..render.low_res import IBRRenderer
-        from ..layout import registered_cameras
-        from ..workspace import Workspace
+        from ibr_pipeline.io.images import read_image
+        from ibr_pipeline.layout import registered_cameras
+        from ibr_pipeline.render.low_res import IBRRenderer
+        from ibr_pipeline.workspace import Workspace
         ws = Workspace(args.workspace)
         folder = ws.input_root
         renderer = IBRRenderer(ws)
@@ -293,15 +289,14 @@ def main(argv=None) -> int:
     models, trainings = {}, {}
     variants = [("dsrnet", True)] + ([] if args.no_ablation else [("dsrnet_no_mvr", False)])
     if args.model:
-        from ..nn.model import load_model
+        from ibr_pipeline.nn.model import load_model
         models["dsrnet"] = load_model(Path(args.model), device)
         report["model"] = str(args.model)
         if args.model_no_mvr:
             models["dsrnet_no_mvr"] = load_model(Path(args.model_no_mvr), device)
             if models["dsrnet_no_mvr"].mvr is not None:
-                print(f"bench.dsrnet: {args.model_no_mvr} has MVR (train it with "
-                      "supersample.use_mvr=false)", file=sys.stderr)
-                return 2
+                raise InputError(f"bench dsrnet: {args.model_no_mvr} has MVR (train it with "
+                                 "supersample.use_mvr=false)")
             report["model_no_mvr"] = str(args.model_no_mvr)
         variants = []
     for key, mvr in variants:
@@ -394,7 +389,3 @@ def _summary(r: dict) -> str:
         lines.append(f"  inference with the self-ensemble: "
                      f"{r['inference_ms_self_ensemble']['median']:.0f} ms (median)")
     return "\n".join(lines)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,4 +1,5 @@
-"""Charts and tables from `ibr bench` results (results.jsonl): Pareto fronts and stability curves.
+"""Charts and tables from `ibr bench pipeline` results (results.jsonl): Pareto fronts and
+stability curves.
 
 Only recorded values are plotted. The latest line per (scene, setting) wins, so rerunning one
 setting updates its point. Quality axis: held-out PSNR (dB) from the evaluate stage.
@@ -11,7 +12,7 @@ QUALITY = ("psnr", "PSNR on held-out views (dB)")
 
 
 def load(results: Path) -> list[dict]:
-    from ..report import latest_results
+    from ibr_pipeline.report import latest_results
     return latest_results(results)
 
 

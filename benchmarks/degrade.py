@@ -1,4 +1,4 @@
-"""Degrade one input of a synthetic scene folder at a time, for the stability sweeps (issue #10 §3).
+"""Degrade one input of a synthetic scene folder at a time, for the stability sweeps (stability.py).
 
 `degrade_input(src, dst, kind, amount, seed)` copies the input folder `src` to `dst` (images,
 depth, cameras, reflectors, gt) and applies one degradation. Kinds and the unit of `amount`:
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ibr_pipeline.errors import InputError
 
 KINDS = ("pose_rot", "pose_trans", "depth_noise", "depth_holes", "views", "textureless",
          "reflector_missing", "reflector_wrong", "far_camera")
@@ -36,7 +36,7 @@ def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def _perturb_poses(dst: Path, kind: str, amount: float, rng) -> None:
-    from ..scene import Camera, cameras_from_json, cameras_to_json
+    from ibr_pipeline.scene import Camera, cameras_from_json, cameras_to_json
     cams = cameras_from_json(dst / "cameras.json")
     out = {}
     for name, cam in cams.items():
@@ -54,7 +54,7 @@ def _perturb_poses(dst: Path, kind: str, amount: float, rng) -> None:
 
 
 def _degrade_depth(dst: Path, kind: str, amount: float, rng) -> None:
-    from ..io.images import read_depth_png, write_depth_png
+    from ibr_pipeline.io.images import read_depth_png, write_depth_png
     for p in sorted((dst / "depth").glob("*.png")):
         d = read_depth_png(p)
         valid = d > 0
@@ -68,7 +68,7 @@ def _degrade_depth(dst: Path, kind: str, amount: float, rng) -> None:
 
 
 def _keep_views(dst: Path, fraction: float) -> None:
-    from ..scene import cameras_from_json, cameras_to_json
+    from ibr_pipeline.scene import cameras_from_json, cameras_to_json
     cams = cameras_from_json(dst / "cameras.json")
     names = sorted(cams)
     n = max(2, int(round(len(names) * fraction)))
@@ -82,7 +82,7 @@ def _keep_views(dst: Path, fraction: float) -> None:
 
 
 def _flatten_walls(dst: Path, amount: float) -> None:
-    from ..io.images import read_image, write_image
+    from ibr_pipeline.io.images import read_image, write_image
     mats = json.loads((dst / "gt" / "scene.json").read_text())["materials"]
     walls = [m["index"] for m in mats if m["name"].startswith("wall")]
     pairs = [(p, dst / "gt" / "geom" / f"{p.stem}.npz") for p in (dst / "images").glob("*.png")]
@@ -123,22 +123,26 @@ def _reflectors(dst: Path, kind: str, amount: float) -> None:
 
 
 def _far_cameras(dst: Path, amount: float, seed: int) -> None:
-    from ..io.images import write_image
-    from ..scene import Camera, cameras_from_json, cameras_to_json
-    from ..synthetic import tasks
-    from ..synthetic.writers import compose_8bit, save_npz
+    from ibr_pipeline.io.images import write_image
+    from ibr_pipeline.scene import Camera, cameras_from_json, cameras_to_json
+    from ibr_pipeline.synthetic.scenes import build_world
+    from ibr_pipeline.synthetic.tracer import Tracer
+    from ibr_pipeline.synthetic.writers import compose_8bit, round_depth, save_npz
     gt = json.loads((dst / "gt" / "scene.json").read_text())
     cams = cameras_from_json(dst / "gt" / "test_cameras.json")
-    tasks._init(gt["scene"], gt["seed"])
+    tracer = Tracer(build_world(gt["scene"], gt["seed"]))
     moved = {}
     for name, cam in cams.items():
         T = cam.cam_from_world.copy()
         c = cam.center - amount * cam.viewing_direction
         T[:3, 3] = -T[:3, :3] @ c
         moved[name] = Camera(cam.K, T, cam.width, cam.height)
-        r = tasks._TRACER.trace(moved[name])
+        r = tracer.trace(moved[name])
         write_image(dst / "gt" / "test" / "images" / name, compose_8bit(r["I0"], r["I1"], r["beta"])[3])
-        save_npz(dst / "gt" / "test" / "geom" / f"{Path(name).stem}.npz", "lzma", **tasks._geom(r))
+        # the fields and dtypes `ibr synth` writes to gt/test/geom
+        save_npz(dst / "gt" / "test" / "geom" / f"{Path(name).stem}.npz", "lzma",
+                 depth=round_depth(r["depth"]), normal=r["normal"].astype(np.float16),
+                 material=r["material"].astype(np.int16))
     (dst / "gt" / "test_cameras.json").write_text(cameras_to_json(moved))
 
 

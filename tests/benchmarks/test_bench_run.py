@@ -1,4 +1,4 @@
-"""`ibr bench` end to end on the tiny scene (slow: it runs every stage)."""
+"""`ibr bench pipeline` end to end on the tiny scene (slow: it runs every stage)."""
 import json
 
 import pytest
@@ -9,7 +9,8 @@ from ibr_pipeline.cli import main
 @pytest.mark.slow
 def test_bench_records_every_figure_and_draws_charts(tmp_path):
     out = tmp_path / "bench"
-    assert main(["bench", "tiny", "--out", str(out), "--only", "default", "--only", "blend_2"]) == 0
+    assert main(["bench", "pipeline", "tiny", "--out", str(out), "--only", "default",
+                 "--only", "blend_2"]) == 0
     rows = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     assert [r["setting"] for r in rows] == ["default", "blend_2"]
     for r in rows:
@@ -30,7 +31,7 @@ def test_fewer_views_setting_keeps_the_scene_and_its_test_cameras(tmp_path, monk
     """`views_50` subsets the default scene's captures (evenly spaced) instead of generating a new
     scene, so its held-out cameras -- half-way between the full path's captures -- are the same."""
     import ibr_pipeline.pipeline as pipeline
-    from ibr_pipeline.bench import grid
+    from benchmarks import grid
     from ibr_pipeline.scene import cameras_from_json
 
     monkeypatch.setattr(pipeline, "run", lambda *a, **k: [])  # only the input preparation is tested

@@ -7,8 +7,8 @@ import subprocess
 import numpy as np
 import pytest
 
+from benchmarks import charts
 from ibr_pipeline import report
-from ibr_pipeline.bench import charts
 from ibr_pipeline.cli import main
 
 

@@ -1,6 +1,6 @@
-"""The stability sweeps of `ibr bench --stability` (issue #10 §3): one degraded input at a time.
+"""The stability sweeps of `ibr bench pipeline SCENE --stability`: one degraded input at a time.
 
-Amounts span the issue's ranges: pose noise 0-1 degree and 0-5 cm, depth noise and holes, down to
+Amounts span these ranges: pose noise 0-1 degree and 0-5 cm, depth noise and holes, down to
 25 % of the views, textureless walls, a missed and a wrongly given reflector, and held-out cameras
 pulled out of the captured region. See degrade.py for what each kind does.
 """

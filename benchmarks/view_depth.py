@@ -1,17 +1,18 @@
-"""Benchmark of issue #5 (`view_depth`, `view_mesh`, Xu et al. §4.2) against synthetic ground truth.
+"""Benchmark of `view_depth` and `view_mesh` (Xu et al. §4.2) against synthetic ground truth.
 
-    python -m ibr_pipeline.bench.view_depth [--scene tiny|mirror_room | --scene-dir DIR] [--workspace WS]
+    ibr bench view_depth [--scene tiny|mirror_room | --scene-dir DIR] [--workspace WS]
            [--voxel 0.03] [--no-mvs] [--device cpu|cuda] [--output bench_view_depth.json]
 
 Without an existing global mesh in WS, the global mesh is an honestly imperfect stand-in: a TSDF
 fusion (open3d VoxelBlockGrid, `--voxel` m) of the exact gt/geom depth maps, so occlusion edges are
-rounded and misplaced by up to a voxel. Measures (targets from issue #5): MAE of the initial vs the
-refined depth within 5 px of a GT Eq. 1 depth edge and elsewhere; recall of GT edge pixels by
-detected edges within 2 px (mean over views, and pooled over all GT edge pixels, the
-issue's literal wording), plus the precision (detected edge pixels within 2 px of a GT edge); mesh fidelity (simplified mesh vs grid mesh vs refined depth, median
-and edge-band error); per-view timings (median); a chart (PNG) of vertices per view vs depth
-error for a sweep of simplification targets; and a PNG of three example views (edges found and
-missed, initial and refined depth error).
+rounded and misplaced by up to a voxel (ibr_pipeline.gt_workspace). Measures (targets in
+docs/VIEW_DEPTH.md): MAE of the initial vs the refined depth within 5 px of a GT Eq. 1 depth edge
+and elsewhere; recall of GT edge pixels by detected edges within 2 px (mean over views, and pooled
+over all GT edge pixels), plus the precision (detected edge pixels within 2 px of a GT edge); mesh
+fidelity (simplified mesh vs grid mesh vs refined depth, median and edge-band error); per-view
+timings (median); a chart (PNG) of vertices per view vs depth error for a sweep of
+simplification targets; and a PNG of three example views (edges found and missed, initial and
+refined depth error).
 """
 from __future__ import annotations
 
@@ -24,85 +25,54 @@ from pathlib import Path
 
 import numpy as np
 
-
-def tsdf_mesh(scene_dir: Path, voxel: float = 0.03, trunc_vox: float = 4.0, source: str = "gt"):
-    """(vertices, faces): TSDF fusion of gt/geom depth ("gt") or depth/*.png ("sensor")."""
-    import open3d as o3d
-    import open3d.core as o3c
-
-    from ..io.images import read_depth_png
-    from ..scene import cameras_from_json
-
-    cams = cameras_from_json(scene_dir / "cameras.json")
-    vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight"), (o3c.float32, o3c.float32), ((1,), (1,)),
-                                        voxel, 8, 50000, o3c.Device("CPU:0"))
-    for name, cam in cams.items():
-        d = (read_depth_png(scene_dir / "depth" / (Path(name).stem + ".png")) if source == "sensor"
-             else gt_depth(scene_dir, name).astype(np.float32))
-        c = cam.resized(d.shape[1], d.shape[0])
-        img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(np.rint(d * 1000).astype(np.uint16))))
-        K, T = o3c.Tensor(c.K, o3c.float64), o3c.Tensor(c.cam_from_world, o3c.float64)
-        blocks = vbg.compute_unique_block_coordinates(img, K, T, 1000.0, 8.0, 2 * trunc_vox)
-        vbg.integrate(blocks, img, K, T, 1000.0, 8.0, trunc_vox)
-    m = vbg.extract_triangle_mesh(weight_threshold=1.0).to_legacy()
-    return np.asarray(m.vertices), np.asarray(m.triangles)
-
-
-def gt_depth(scene_dir: Path, name: str) -> np.ndarray:
-    with np.load(Path(scene_dir) / "gt" / "geom" / (Path(name).stem + ".npz")) as z:
-        return z["depth"].astype(np.float64)
+from ibr_pipeline import layout as L
+from ibr_pipeline.errors import InputError
+from ibr_pipeline.gt_workspace import gt_depth
 
 
 def make_workspace(scene_dir: Path, ws_dir: Path, voxel: float) -> None:
-    from ..io.mesh import Mesh, write_ply
-    from ..runner import StageContext
-    from ..stages import ingest
-    from ..workspace import Workspace
-
-    ws_dir.mkdir(parents=True, exist_ok=True)
-    (ws_dir / "ibr.toml").write_text(f'[input]\npath = "{Path(scene_dir).absolute()}"\n')
-    ws = Workspace(ws_dir)
-    ingest.run(StageContext(ws, "ingest", ingest.IngestConfig(check_pixels=False)))
-    if not (ws_dir / "global" / "mesh.ply").is_file():
-        (ws_dir / "global").mkdir(exist_ok=True)
-        shutil.copy(Path(scene_dir) / "cameras.json", ws_dir / "global" / "cameras.json")
-        v, f = tsdf_mesh(Path(scene_dir), voxel)
-        write_ply(ws_dir / "global" / "mesh.ply", Mesh(v, f))
+    """Ingest `scene_dir` into `ws_dir`; unless WS already has a global mesh (e.g. from the
+    global_mesh stage), its global_mesh outputs are the GT cameras and a TSDF of the GT depth."""
+    from ibr_pipeline.gt_workspace import write_gt_workspace
+    has_mesh = (Path(ws_dir) / L.GLOBAL_MESH).is_file()
+    write_gt_workspace(scene_dir, ws_dir, "ingest" if has_mesh else "global_mesh",
+                       global_mesh="tsdf", voxel=voxel, check_pixels=False)
 
 
 def _gt_edges(g, cam):
-    from ..geometry.depth_edges import depth_edges
-    from ..geometry.normals import normals_from_depth, points_from_depth
+    from ibr_pipeline.geometry.depth_edges import depth_edges
+    from ibr_pipeline.geometry.normals import normals_from_depth, points_from_depth
     return depth_edges(points_from_depth(g, cam.K), normals_from_depth(g, cam.K), g).pixels()
 
 
 def evaluate(scene_dir: Path, ws_dir: Path, sweep: tuple = (500, 1000, 2000, 4000, 8000, 16000)) -> dict:
     import scipy.ndimage as nd
+    from PIL import Image
 
-    from ..geometry import depth_edges as de
-    from ..geometry.grid_mesh import depth_error, grid_mesh, render_depth
-    from ..geometry.normals import normals_from_points, points_from_depth
-    from ..io.mesh import read_ply
-    from ..scene import cameras_from_json
+    from ibr_pipeline.geometry import depth_edges as de
+    from ibr_pipeline.geometry.grid_mesh import depth_error, grid_mesh, render_depth
+    from ibr_pipeline.geometry.normals import normals_from_points, points_from_depth
+    from ibr_pipeline.io.mesh import read_ply
+    from ibr_pipeline.scene import cameras_from_json
 
-    cams = cameras_from_json(ws_dir / "global" / "cameras.json")
+    cams = cameras_from_json(ws_dir / L.REGISTERED_CAMERAS)
     rows, sweep_rows, swept = [], [], 0
     for name, cam in cams.items():
-        vd = ws_dir / "views" / name
-        d0, d1, g = np.load(vd / "depth_init.npy"), np.load(vd / "depth.npy"), gt_depth(scene_dir, name)
+        vd = ws_dir / L.view_dir(name)
+        d0, d1, g = np.load(vd / L.DEPTH_INIT), np.load(vd / L.DEPTH), gt_depth(scene_dir, name)
         eg = _gt_edges(g, cam)
         band = nd.distance_transform_edt(~eg) <= 5
         ok = (g > 0) & (d0 > 0)
-        e1 = np.asarray(__import__("PIL.Image", fromlist=["Image"]).open(vd / "edges.png")) > 127
+        e1 = np.asarray(Image.open(vd / L.EDGES)) > 127
         P0 = points_from_depth(d0, cam.K)
         e0 = de.depth_edges(P0, normals_from_points(P0, d0 > 0), d0).pixels()
         gte = eg & ok
-        # issue #5: "GT occlusion-edge pixels with a detected depth edge within 2 px" (recall);
-        # per view (mean over views, the first version's figure) and pooled over all GT edge pixels
+        # recall: GT occlusion-edge pixels with a detected depth edge within 2 px; per view (mean
+        # over views) and pooled over all GT edge pixels
         hits = lambda e: int((nd.distance_transform_edt(~e)[gte] <= 2).sum())  # noqa: E731
         rec = lambda e: hits(e) / int(gte.sum()) if gte.any() else float("nan")  # noqa: E731
         on_gt = nd.distance_transform_edt(~eg) <= 2  # precision: detected edges within 2 px of GT
-        m = read_ply(vd / "mesh.ply")
+        m = read_ply(vd / L.MESH)
         P1 = points_from_depth(d1, cam.K)
         pairs = de.depth_edges(P1, normals_from_points(P1, d1 > 0), d1)
         gv, gf = grid_mesh(d1, cam, pairs)
@@ -110,7 +80,7 @@ def evaluate(scene_dir: Path, ws_dir: Path, sweep: tuple = (500, 1000, 2000, 400
         simp_d, grid_d = render_depth(m.vertices, m.faces, cam), render_depth(gv, gf, cam)
         es, eg_ = depth_error(simp_d, d1), depth_error(grid_d, d1)
         bs, bg = depth_error(simp_d, d1, eband), depth_error(grid_d, d1, eband)
-        # the issue's "edge-band error not more than 1.5x that of the unsimplified grid mesh":
+        # the target "edge-band error not more than 1.5x that of the unsimplified grid mesh":
         # against the refined depth the grid's error is ~0 by construction, so also against GT,
         # in the GT edge band (pixels within 5 px of a GT depth edge) both meshes cover
         gb = band & ok & (simp_d > 0) & (grid_d > 0)
@@ -129,10 +99,10 @@ def evaluate(scene_dir: Path, ws_dir: Path, sweep: tuple = (500, 1000, 2000, 400
                      "mesh_gt_band_mae": gt_band(simp_d), "grid_gt_band_mae": gt_band(grid_d),
                      "mesh_coverage": es["coverage"], "grid_coverage": eg_["coverage"],
                      "mesh_faces": int(len(m.faces)),
-                     "depth_ms": json.loads((vd / "depth_report.json").read_text())["ms"],
-                     "depth_cpu_ms": json.loads((vd / "depth_report.json").read_text()).get("cpu_ms"),
-                     "mesh_ms": json.loads((vd / "mesh_report.json").read_text())["ms"],
-                     "mesh_cpu_ms": json.loads((vd / "mesh_report.json").read_text()).get("cpu_ms")})
+                     "depth_ms": json.loads((vd / L.DEPTH_REPORT).read_text())["ms"],
+                     "depth_cpu_ms": json.loads((vd / L.DEPTH_REPORT).read_text()).get("cpu_ms"),
+                     "mesh_ms": json.loads((vd / L.MESH_REPORT).read_text())["ms"],
+                     "mesh_cpu_ms": json.loads((vd / L.MESH_REPORT).read_text()).get("cpu_ms")})
         if swept < 6:  # sweep on 6 views (not 6 rows): simplify the grid mesh to fixed targets
             import fast_simplification as fs
             n_rows = len(sweep_rows)
@@ -214,22 +184,22 @@ def examples(scene_dir: Path, ws_dir: Path, picks: list[tuple[str, str]], path: 
     import scipy.ndimage as nd
     from PIL import Image
 
-    from ..io.images import read_image
-    from ..scene import cameras_from_json
+    from ibr_pipeline.io.images import read_image
+    from ibr_pipeline.scene import cameras_from_json
 
     if not picks:
         return
-    cams = cameras_from_json(ws_dir / "global" / "cameras.json")
+    cams = cameras_from_json(ws_dir / L.REGISTERED_CAMERAS)
     fig, axes = plt.subplots(len(picks), 3, figsize=(12, 3.2 * len(picks)), squeeze=False)
     for row, (name, title) in zip(axes, picks):
-        cam, vd = cams[name], ws_dir / "views" / name
-        d0, d1, g = np.load(vd / "depth_init.npy"), np.load(vd / "depth.npy"), gt_depth(scene_dir, name)
+        cam, vd = cams[name], ws_dir / L.view_dir(name)
+        d0, d1, g = np.load(vd / L.DEPTH_INIT), np.load(vd / L.DEPTH), gt_depth(scene_dir, name)
         img_path = Path(scene_dir) / "images" / name   # a synthetic scene's layout
         img = read_image(img_path) if img_path.is_file() else np.zeros(g.shape + (3,))
         ok = (g > 0) & (d0 > 0)
         gte = _gt_edges(g, cam) & ok
-        e1 = np.asarray(Image.open(vd / "edges.png")) > 127
-        mask = np.asarray(Image.open(vd / "mask.png")) > 127
+        e1 = np.asarray(Image.open(vd / L.EDGES)) > 127
+        mask = np.asarray(Image.open(vd / L.REFINE_MASK)) > 127
         near = nd.distance_transform_edt(~e1) <= 2
         ov = np.clip(img, 0, 1) ** (1 / 2.2) * 0.6
         ov[mask] += np.array([0.0, 0.0, 0.3])
@@ -247,23 +217,21 @@ def examples(scene_dir: Path, ws_dir: Path, picks: list[tuple[str, str]], path: 
     plt.close(fig)
 
 
-def main(argv=None) -> int:
-    from ..executors import make_executor
-    from ..pipeline import load_configs, run
-    from ..stages import STAGES, stage_by_name
-    from ..workspace import Workspace
-
-    ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.view_depth", description=__doc__.split("\n")[0])
-    ap.add_argument("--scene", default="tiny", choices=("tiny", "mirror_room"))
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--scene", default="tiny", choices=("tiny", "mirror_room"),
+                    help="tiny: generated in a temporary folder; mirror_room: sample_data/ (default tiny)")
     ap.add_argument("--scene-dir", type=Path,
                     help="a synthetic scene folder with gt/ (e.g. the full-size one of `make "
                          "demo-full`, with --workspace out/full --no-run); overrides --scene")
     ap.add_argument("--workspace", type=Path, help="reuse/keep this workspace (default: a temp dir)")
-    ap.add_argument("--voxel", type=float, default=0.03)
-    ap.add_argument("--no-mvs", action="store_true")
-    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    ap.add_argument("--output", type=Path, default=Path("bench_view_depth.json"))
-    ap.add_argument("--chart", type=Path, default=Path("bench_view_mesh_sweep.png"))
+    ap.add_argument("--voxel", type=float, default=0.03,
+                    help="TSDF voxel (m) of the stand-in global mesh (default 0.03)")
+    ap.add_argument("--no-mvs", action="store_true", help="view_depth.mvs = false")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="view_depth.device")
+    ap.add_argument("--output", type=Path, default=Path("bench_view_depth.json"),
+                    help="JSON result (default bench_view_depth.json)")
+    ap.add_argument("--chart", type=Path, default=Path("bench_view_mesh_sweep.png"),
+                    help="PNG of the simplification sweep (default bench_view_mesh_sweep.png)")
     ap.add_argument("--examples", type=Path, default=Path("bench_view_depth_examples.png"),
                     help="PNG of three views (lowest recall, largest loss elsewhere, median band "
                          "change): image with mask, detected/found/missed GT edges, and the "
@@ -271,19 +239,26 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="worker processes for the two stages")
     ap.add_argument("--no-run", action="store_true",
                     help="only evaluate the views already in --workspace (e.g. after `ibr view_depth`)")
-    a = ap.parse_args(argv)
+
+
+def main(a: argparse.Namespace) -> int:
+    from ibr_pipeline.executors import make_executor
+    from ibr_pipeline.pipeline import load_configs, run
+    from ibr_pipeline.stages import STAGES, stage_by_name
+    from ibr_pipeline.workspace import Workspace
+
+    from .common import SAMPLE, tiny_scene
+
     tmp = None
     if a.scene_dir is not None:
         scene = a.scene_dir
         if not (scene / "gt" / "geom").is_dir():
-            ap.error(f"--scene-dir {scene}: no gt/geom folder (not a synthetic scene)")
+            raise InputError(f"--scene-dir {scene}: no gt/geom folder (not a synthetic scene)")
     elif a.scene == "mirror_room":
-        scene = Path(__file__).resolve().parents[2] / "sample_data" / "mirror_room"
+        scene = SAMPLE
     else:
-        from ..synthetic.generate import SynthOptions, generate
         tmp = Path(tempfile.mkdtemp(prefix="bench_vd_"))
-        scene = tmp / "tiny"
-        generate(SynthOptions("tiny", seed=3, progress=False), scene)
+        scene = tiny_scene(tmp / "tiny")
     ws_dir = a.workspace or Path(tempfile.mkdtemp(prefix="bench_vd_ws_"))
     wall = None
     c0 = time.process_time()
@@ -298,9 +273,10 @@ def main(argv=None) -> int:
             run(STAGES, ws, configs, stages, force=True, progress=False, executor=executor)
         wall = round(time.perf_counter() - t0, 1)
     out = evaluate(scene, ws_dir)
-    gm = json.loads((ws_dir / "global" / "report.json").read_text()) if (
-        ws_dir / "global" / "report.json").is_file() else None
-    out["summary"].update(scene=str(a.scene_dir) if a.scene_dir else a.scene, workspace=str(ws_dir), mvs=not a.no_mvs, device=a.device,
+    report = ws_dir / L.GLOBAL_REPORT
+    gm = json.loads(report.read_text()) if report.is_file() else None
+    out["summary"].update(scene=str(a.scene_dir) if a.scene_dir else a.scene, workspace=str(ws_dir),
+                          mvs=not a.no_mvs, device=a.device,
                           global_mesh=("global_mesh stage (" + str(gm.get("dense")) + ")") if gm
                           else f"TSDF of GT depth, voxel {a.voxel} m", jobs=a.jobs,
                           wall_s_both_stages=wall,
@@ -312,7 +288,3 @@ def main(argv=None) -> int:
     if tmp:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,7 +1,7 @@
-"""Benchmark of issue #7: held-out accuracy and frame time of the IBR renderer.
+"""Benchmark of the IBR renderer: held-out accuracy and frame time.
 
-    python -m ibr_pipeline.bench.render [--scene tiny|mirror_room | --root DIR] [--ws WS] [--width 640
-        --height 480] [--frames 24] [--repeats 3] [--device cpu|cuda] [--out FILE]
+    ibr bench render [--scene tiny|mirror_room | --root DIR] [--ws WS] [--width 640 --height 480]
+        [--frames 24] [--repeats 3] [--device cpu|cuda] [--out FILE]
 
 Accuracy (held-out cameras of the scene, against gt/test/images): the oracle representation
 (GT depth + GT layers, `render/oracle.py`) with two layers and with one (the single-layer
@@ -19,28 +19,23 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ibr_pipeline.errors import InputError
+
 
 def _scene_root(name: str, cache: Path) -> Path:
-    repo = Path(__file__).resolve().parents[2]
-    if name == "mirror_room":
-        return repo / "sample_data" / "mirror_room"
-    root = cache / name
-    if not (root / "gt" / "test_cameras.json").is_file():
-        from ..synthetic.generate import SynthOptions, generate
-        generate(SynthOptions(name, seed=3, progress=False), root)
-    return root
+    from .common import SAMPLE, tiny_scene
+    return SAMPLE if name == "mirror_room" else tiny_scene(cache / name)
 
 
 def accuracy(model, root: Path, with_flip: bool = True) -> dict:
-    from .. import metrics
-    from ..io.images import read_image
-    from ..scene import cameras_from_json
+    from ibr_pipeline import metrics
+    from ibr_pipeline.io.images import read_image
+    from ibr_pipeline.scene import cameras_from_json
     test = cameras_from_json(root / "gt" / "test_cameras.json")
     mats = json.loads((root / "gt" / "scene.json").read_text())["materials"]
     kinds = [m["index"] for m in mats if m.get("kr", 0) > 0]
@@ -54,7 +49,7 @@ def accuracy(model, root: Path, with_flip: bool = True) -> dict:
         r["psnr_covered"] = metrics.psnr(ref, f.color, f.covered)
         r["holes"] = float(1 - f.covered.mean())
         rows.append(r)
-    from ..stages.evaluate import mean_metrics
+    from ibr_pipeline.stages.evaluate import mean_metrics
     out = mean_metrics(rows)
     out["views"] = len(rows)
     return out
@@ -79,41 +74,43 @@ def speed(model, cams: list, repeats: int) -> dict:
             "mean_selected_views": float(parts[:, 3].mean())}
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.render", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scene", choices=("tiny", "mirror_room"), default="mirror_room")
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", choices=("tiny", "mirror_room"), default="mirror_room",
+                   help="tiny: generated in --cache; mirror_room: sample_data/ (default)")
     p.add_argument("--root", type=Path, help="a synthetic scene folder (`ibr synth` output) to use "
                    "instead of --scene, e.g. a 120-view mirror_room")
     p.add_argument("--ws", type=Path, help="also score this workspace's representation")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--width", type=int, default=640, help="frame width of the speed path (640)")
+    p.add_argument("--height", type=int, default=480, help="frame height of the speed path (480)")
     p.add_argument("--frames", type=int, default=24, help="frames of the speed path")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    p.add_argument("--no-flip", action="store_true")
-    p.add_argument("--cache", type=Path, default=Path("out/bench_render"))
+    p.add_argument("--repeats", type=int, default=3, help="passes over the speed path (3)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="cuda: check that the GL renderer is an NVIDIA one")
+    p.add_argument("--no-flip", action="store_true", help="skip the FLIP metric (slow on CPU)")
+    p.add_argument("--cache", type=Path, default=Path("out/bench_render"),
+                   help="where generated scenes and the JSON go (default out/bench_render)")
     p.add_argument("--out", type=Path, help="JSON output (default out/bench_render/render_<scene>.json)")
-    a = p.parse_args(argv)
+
+
+def main(a: argparse.Namespace) -> int:
     if a.width < 16 or a.height < 16 or a.frames < 1 or a.repeats < 1:
-        print("bench.render: error: --width/--height >= 16, --frames/--repeats >= 1", file=sys.stderr)
-        return 2
-    from ..render.gl import renderer_name
-    from ..render.oracle import GroundTruth
-    from ..render.video import interpolate_path
-    from ..scene import cameras_from_json
+        raise InputError("bench render: --width/--height >= 16, --frames/--repeats >= 1")
+    from ibr_pipeline.render.gl import renderer_name
+    from ibr_pipeline.render.oracle import GroundTruth
+    from ibr_pipeline.render.video import interpolate_path
+    from ibr_pipeline.scene import cameras_from_json
 
     gl_name = renderer_name()
     if a.device == "cuda" and "nvidia" not in gl_name.lower():
-        print(f"bench.render: error: --device cuda but the GL renderer is {gl_name}", file=sys.stderr)
-        return 2
+        raise InputError(f"bench render: --device cuda but the GL renderer is {gl_name}")
     root = a.root if a.root is not None else _scene_root(a.scene, a.cache)
     gt = GroundTruth(root)
     t0 = time.perf_counter()
     two = gt.model(layers=True)
     build_s = time.perf_counter() - t0
     one = gt.model(layers=False)
-    res = {"scene": a.scene if a.root is None else a.root.name, "root": str(root), "renderer": gl_name, "machine": platform.node(),
+    res = {"scene": a.scene if a.root is None else a.root.name, "root": str(root), "renderer": gl_name,
+           "machine": platform.node(),
            "python": platform.python_version(), "oracle_build_s": build_s,
            "accuracy": {"oracle": accuracy(two, root, not a.no_flip),
                         "single_layer": accuracy(one, root, not a.no_flip)}}
@@ -123,8 +120,8 @@ def main(argv=None) -> int:
     path = interpolate_path(base + base[:1], a.frames) if len(base) >= 2 else base
     cams = [c.resized(a.width, a.height) for c in path]
     if a.ws is not None:
-        from ..render.ibr import IBRModel
-        from ..workspace import Workspace
+        from ibr_pipeline.render.ibr import IBRModel
+        from ibr_pipeline.workspace import Workspace
         ours = IBRModel.load(Workspace(a.ws), layers=True)
         res["accuracy"]["ours"] = accuracy(ours, root, not a.no_flip)
         # the frame time with the reconstructed meshes (their size is view_mesh's budget, not
@@ -161,7 +158,3 @@ def _diff(a, b, k):
     if not a or not b or a.get(k) is None or b.get(k) is None:
         return None
     return a[k] - b[k]
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,15 +1,15 @@
-"""Benchmark of stage `reflection` (issue #6) against synthetic ground truth.
+"""Benchmark of stage `reflection` against synthetic ground truth.
 
-    .venv/bin/python -m ibr_pipeline.bench.reflection [--scene tiny|mirror_room] [--out DIR]
-        [--repeats 3] [--scale 1.0] [--ablation [--rows 0,4]] [--heldout] [--timing]
-        [--depth-noise 0.01] [--m1-noise 0.02]
+    ibr bench reflection [--scene tiny|mirror_room|DIR] [--out DIR] [--repeats 3] [--scale 1.0]
+        [--ablation [--rows 0,4]] [--heldout] [--timing] [--depth-noise 0.01] [--m1-noise 0.02]
 
-Builds a workspace whose upstream outputs are the exact synthetic geometry (global/cameras.json,
-global/mesh.ply = gt/mesh.ply, views/<v>/depth.npy from gt/geom, a grid mesh.ply), runs the stage
-through the runner and reports: plane accuracy of the detection (normal angle, offset vs GT),
-PSNR of I0 and beta*I1 inside each reflector vs gt/I0, gt/I1, gt/beta, the mirror's I1, the
-held-out re-rendering gain over warping the unsplit image, the ablation table, and seconds per
-reflective view (median of --repeats runs of one view). Prints and writes JSON.
+Builds a workspace whose upstream outputs are the exact synthetic geometry
+(ibr_pipeline.gt_workspace: global/cameras.json, global/mesh.ply = gt/mesh.ply, views/<v>/depth.npy
+from gt/geom, a grid mesh.ply), runs the stage through the runner and reports: plane accuracy of
+the detection (normal angle, offset vs GT), PSNR of I0 and beta*I1 inside each reflector vs gt/I0,
+gt/I1, gt/beta, the mirror's I1, the held-out re-rendering gain over warping the unsplit image,
+the ablation table, and seconds per reflective view (median of --repeats runs of one view).
+Prints and writes OUT/reflection_bench.json.
 """
 from __future__ import annotations
 
@@ -22,83 +22,43 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
+from ibr_pipeline import layout as L
+from ibr_pipeline.geometry.reflection_views import Footprint, Loader
 
 
-def make_gt_workspace(scene: Path, ws_dir: Path, mesh_step: int = 4, depth_noise: float = 0.0):
-    """A workspace over `scene` whose global_mesh / view_depth / view_mesh outputs are exact GT.
-
-    depth_noise > 0: each view's depth is multiplied by 1 + a smooth random field (std
-    `depth_noise`, correlation ~1/8 of the image) -- MVS-like low-frequency errors, so that the
-    surface flows w(u, M0) are misaligned by a few pixels (what the ARAP warp of Eq. 5 corrects)."""
-    from ..geometry.planes import depth_points, grid_mesh
-    from ..io.mesh import Mesh, write_ply
-    from ..pipeline import load_configs, run, select_stages
-    from ..scene import cameras_from_json, cameras_to_json
-    from ..stages import STAGES
-    from ..workspace import Workspace
-
-    scene, ws_dir = Path(scene), Path(ws_dir)
-    ws_dir.mkdir(parents=True, exist_ok=True)
-    (ws_dir / "ibr.toml").write_text(f"[input]\npath = {json.dumps(str(scene.resolve()))}\n")
-    ws = Workspace(ws_dir)
-    sel = select_stages(STAGES, only="ingest")
-    run(STAGES, ws, load_configs(STAGES, ws), sel, progress=False)
-    cams = cameras_from_json(scene / "cameras.json")
-    ws.write_text("global/cameras.json", cameras_to_json(cams))
-    shutil.copyfile(scene / "gt" / "mesh.ply", ws.path("global/mesh.ply"))
-    for name, cam in cams.items():
-        stem = Path(name).stem
-        depth = np.load(scene / "gt" / "geom" / f"{stem}.npz")["depth"].astype(np.float32)
-        if depth_noise > 0:
-            depth = (depth * (1 + _smooth_noise(depth.shape, depth_noise,
-                                                zlib.crc32(stem.encode())))).astype(np.float32)
-        with ws.atomic_write(ws.view_file(name, "depth.npy")) as f:
-            np.save(f, depth)
-        v, fc = grid_mesh(depth_points(cam, depth), depth, step=mesh_step)
-        write_ply(ws.path(ws.view_file(name, "mesh.ply")), Mesh(v, fc))
-    return ws
-
-
-def _smooth_noise(shape, std: float, seed: int) -> np.ndarray:
-    import cv2
-    rng = np.random.default_rng(seed)
-    H, W = shape
-    small = rng.standard_normal((max(2, H // 40), max(2, W // 40))).astype(np.float32)
-    f = cv2.resize(small, (W, H), interpolation=cv2.INTER_CUBIC)
-    return std * f / max(float(f.std()), 1e-9)
+def make_gt_workspace(scene: Path, ws_dir: Path, depth_noise: float = 0.0):
+    """A workspace over `scene` whose global_mesh / view_depth / view_mesh outputs are exact GT
+    (grid meshes). depth_noise > 0: each view's depth is multiplied by 1 + a smooth random field
+    (std `depth_noise`) -- MVS-like low-frequency errors, so that the surface flows w(u, M0) are
+    misaligned by a few pixels (what the ARAP warp of Eq. 5 corrects)."""
+    from ibr_pipeline.gt_workspace import write_gt_workspace
+    return write_gt_workspace(scene, ws_dir, "view_mesh", mesh="grid", depth_noise=depth_noise)
 
 
 def run_stage(ws, overrides: dict | None = None, force: bool = False):
-    from ..pipeline import load_configs, run, select_stages
-    from ..stages import STAGES
+    from ibr_pipeline.pipeline import load_configs, run, select_stages
+    from ibr_pipeline.stages import STAGES
     sel = select_stages(STAGES, only="reflection")
     return run(STAGES, ws, load_configs(STAGES, ws, {"reflection": overrides or {}}), sel,
                force=force, progress=False)
 
 
-def read_gt(scene: Path, name: str):
-    from ..io.images import read_image
-    stem = Path(name).stem
-    g = scene / "gt"
-    return (read_image(g / "I0" / f"{stem}.png"), read_image(g / "I1" / f"{stem}.png"),
-            read_image(g / "beta" / f"{stem}.png")[..., 0])
-
-
 def layer_accuracy(ws, scene: Path) -> dict:
     """PSNR of I0 and beta*I1 per reflector (pixels of our beta support with that reflectance)."""
-    from ..io.images import read_image
-    from ..metrics import psnr
+    from ibr_pipeline.io.images import read_image
+    from ibr_pipeline.metrics import psnr
+    from ibr_pipeline.render.oracle import GroundTruth
+    gt = GroundTruth(scene)
     out: dict = {}
-    for lay in sorted(ws.root.glob("views/*/layers.json")):
+    for lay in sorted(ws.root.glob(f"views/*/{L.LAYERS}")):
         rep = json.loads(lay.read_text())
         if rep["reflector"] is None:
             continue
         vdir = lay.parent
         name = next(n for n in json.loads((Path(scene) / "cameras.json").read_text())["cameras"]
                     if vdir.name == Path(n).name or vdir.name == n)
-        I0, I1, beta = read_image(vdir / "I0.png"), read_image(vdir / "I1.png"), np.load(vdir / "beta.npy")
-        g0, g1, gb = read_gt(scene, name)
+        I0, I1, beta = read_image(vdir / L.I0), read_image(vdir / L.I1), np.load(vdir / L.BETA)
+        g0, g1, gb = gt.layers(name)
         for r in rep["reflectors"]:
             m = np.isclose(beta, r["beta"]) & (gb > 0)
             if m.sum() < 50:
@@ -116,7 +76,7 @@ def layer_accuracy(ws, scene: Path) -> dict:
 def plane_accuracy(ws, scene: Path) -> list[dict]:
     """For each GT reflector: the closest detected plane's normal angle (deg) and offset (m)."""
     gt = json.loads((Path(scene) / "reflectors.json").read_text())["reflectors"]
-    planes = json.loads(ws.path("reflection/planes.json").read_text())
+    planes = json.loads(ws.path(L.PLANES).read_text())
     det = [p for p in planes["reflectors"] if p.get("source") == "detected"]
     rows = []
     for g in gt:
@@ -134,17 +94,18 @@ def plane_accuracy(ws, scene: Path) -> list[dict]:
         rows.append(best or {"reflector": g["name"], "detected": None})
     return rows
 
-# --- ablation and held-out re-rendering (issue #6 accuracy items 3 and 4) -----------------------
+
+# --- ablation and held-out re-rendering ----------------------------------------------------------
 # Both call the stage's own per-reflector decomposition (`geometry.reflection_views.decompose_reflector`)
 # on a Loader of the workspace, in float (no 8-bit PNG round trip), one config per row.
-_NO_V = {"optimise_m1_vertices": False}  # rows 0-6 as measured before M1's vertices existed
+_NO_V = {"optimise_m1_vertices": False}  # rows 0-6: the paper's terms alone, M1's vertices fixed
 
 
 def _d(over: dict) -> dict:
     return {"decompose": over}
 
 
-ABLATION = [  # cumulative rows of the issue's table, then the additions of this implementation
+ABLATION = [  # cumulative rows of the paper's terms, then the additions of this implementation
     ("init only (Eq. 6, no warp)", _d({"use_warp": False, "outer_iterations": 0, "lambda_scene": 0.0,
                                     **_NO_V})),
     ("+ optimisation (Eq. 7)", _d({"use_warp": False, "lambda_scene": 0.0, **_NO_V})),
@@ -164,38 +125,48 @@ ABLATION = [  # cumulative rows of the issue's table, then the additions of this
 ]
 
 
-def _loader(ws, over: dict, m1_noise: float = 0.0):
-    """The stage's Loader on `ws`. m1_noise > 0: every view's M1 depth (its mirror-world points)
-    is multiplied by 1 + a smooth random field of that std (independent per view, like the
+class NoisyM1Loader(Loader):
+    """The stage's Loader, with every view's M1 depth (its mirror-world points) multiplied by
+    1 + a smooth random field of std `m1_noise` (independent per view and reflector, like the
     depth noise): M1 errors that the vertex optimisation can fix (G and the planes stay exact).
-    `loader.m1_true[(view, reflector)]` keeps the unperturbed M1 depth."""
-    from ..config import build_config
-    from ..geometry.reflection_views import Footprint, Loader, ReflectionConfig, compute_planes
-    cfg = build_config(ReflectionConfig, "reflection", over)
-    loader = Loader(ws, ws.scene(), cfg)
-    loader.reflectors = compute_planes(loader)["reflectors"]
-    loader.m1_true = {}
-    footprint = loader.footprint
+    `m1_true[(view, reflector)]` keeps the unperturbed M1 depth of every footprint built."""
 
-    def noisy_footprint(name, refl):
+    def __init__(self, ws, scene, cfg, m1_noise: float = 0.0):
+        super().__init__(ws, scene, cfg)
+        self.m1_noise = m1_noise
+        self.m1_true: dict = {}
+        self.noisy: dict = {}  # (view, reflector) -> the perturbed footprint
+
+    def footprint(self, name, refl) -> Footprint:
         key = (name, refl["name"])
-        fresh = key not in loader._fp
-        fp = footprint(name, refl)
-        if fresh:
-            loader.m1_true[key] = fp.D1.copy()
-            if m1_noise > 0:
-                f = _smooth_noise(fp.D1.shape, m1_noise, zlib.crc32(f"m1/{name}/{key[1]}".encode()))
-                loader._fp[key] = fp = Footprint(fp.name, fp.camera, fp.mask,
-                                                 (fp.D1 * (1 + f)).astype(np.float32))
-        return fp
-    loader.footprint = noisy_footprint
+        if key not in self.noisy:
+            from ibr_pipeline.gt_workspace import smooth_noise
+            fp = super().footprint(name, refl)
+            self.m1_true[key] = fp.D1.copy()
+            if self.m1_noise > 0:
+                f = smooth_noise(fp.D1.shape, self.m1_noise, zlib.crc32(f"m1/{name}/{key[1]}".encode()))
+                fp = Footprint(fp.name, fp.camera, fp.mask, (fp.D1 * (1 + f)).astype(np.float32))
+            self.noisy[key] = fp
+        return self.noisy[key]
+
+
+def make_loader(ws, over: dict, m1_noise: float = 0.0):
+    """(config, loader) of the stage on `ws` with reflection overrides `over`; the loader's
+    reflectors are the computed planes (NoisyM1Loader for `m1_noise`)."""
+    from ibr_pipeline.config import build_config
+    from ibr_pipeline.geometry.reflection_views import ReflectionConfig, compute_planes
+    cfg = build_config(ReflectionConfig, "reflection", over)
+    loader = NoisyM1Loader(ws, ws.scene(), cfg, m1_noise)
+    loader.reflectors = compute_planes(loader)["reflectors"]
     return cfg, loader
 
 
 def true_depth(scene: Path, name: str, camera) -> np.ndarray:
     """The GT z-depth of view `name` (what --depth-noise perturbs) at `camera`'s size."""
     import cv2
-    d = np.load(Path(scene) / "gt" / "geom" / f"{Path(name).stem}.npz")["depth"].astype(np.float64)
+
+    from ibr_pipeline.gt_workspace import gt_depth
+    d = gt_depth(scene, name)
     if d.shape != (camera.height, camera.width):
         d = cv2.resize(d, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
     return d
@@ -208,13 +179,9 @@ def depth_error(D, offset, true, mask) -> float:
     return float(np.mean(np.abs(D[k] / true[k] - 1))) if k.any() else 0.0
 
 
-def _forget_passes(loader) -> None:
+def forget_passes(loader) -> None:
+    """Drop the loader's first-pass reflection layers (multi-view pass) before another config."""
     loader.first.clear()
-
-
-def _psnr(a, b) -> float:
-    mse = float(np.mean((np.asarray(a) - np.asarray(b)) ** 2))
-    return float("inf") if mse == 0 else float(10 * np.log10(1 / mse))
 
 
 def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> list[dict]:
@@ -222,18 +189,21 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
     over the views, for each configuration row (`ABLATION`). Mirrors are exact in every row.
     Also M1's and M0's depth errors in the mask (mean |D (1 + delta) / D_true - 1|, median over
     views; M0's truth is the GT depth, which --depth-noise perturbs)."""
-    from ..config import build_config
-    from ..geometry.reflection_views import ReflectionConfig, decompose_reflector
-    _, loader = _loader(ws, base, m1_noise)
+    from ibr_pipeline.config import build_config
+    from ibr_pipeline.geometry.reflection_views import ReflectionConfig, decompose_reflector
+    from ibr_pipeline.metrics import psnr
+    from ibr_pipeline.render.oracle import GroundTruth
+    gt = GroundTruth(scene)
+    _, loader = make_loader(ws, base, m1_noise)
     out = []
     for label, over in rows or ABLATION:
         cfg = build_config(ReflectionConfig, "reflection", base, over)
         opts = cfg.decompose
-        _forget_passes(loader)
+        forget_passes(loader)
         per: dict = {}
         c0, t0 = time.process_time(), time.perf_counter()
         for v in loader.names:
-            g0, g1, gb = read_gt(scene, v)
+            g0, g1, gb = gt.layers(v)
             for refl in loader.reflectors:
                 if refl.get("beta") == 1.0 or loader.mask(v, refl).sum() < cfg.min_mask_pixels:
                     continue
@@ -256,8 +226,8 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
                                            loader.m1_true[(v, refl["name"])], info["mask"]))
                 d["m0"].append(depth_error(g.depth, info.get("m0_offset"),
                                            true_depth(scene, v, g.camera), info["mask"]))
-                d["I0"].append(_psnr((I - R)[m], g0[m]))
-                d["betaI1"].append(_psnr(R[m], (gb[..., None] * g1)[m]))
+                d["I0"].append(psnr((I - R)[m], g0[m]))
+                d["betaI1"].append(psnr(R[m], (gb[..., None] * g1)[m]))
         row = {"row": label, "config": over, "seconds": time.perf_counter() - t0,
                "cpu_seconds": time.process_time() - c0}
         for name, d in per.items():
@@ -277,19 +247,19 @@ def timing(ws, base: dict) -> dict:
     """Seconds per view of the stage's `run` in one process, views in order (like one worker:
     the Loader cache is shared, so later views reuse the masks / mirror points of earlier ones).
     Wall and CPU (process) seconds; reflective views = those that wrote I0.png."""
-    from ..config import build_config
-    from ..runner import StageContext
-    from ..geometry.reflection_views import ReflectionConfig
-    from ..stages.reflection import run as run_view
+    from ibr_pipeline.config import build_config
+    from ibr_pipeline.geometry.reflection_views import ReflectionConfig
+    from ibr_pipeline.runner import StageContext
+    from ibr_pipeline.stages.common import registered_views
+    from ibr_pipeline.stages.reflection import run as run_view
     ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", base),
                        ws.scene())
-    from ..stages.common import registered_views
     rows = []
     for v in registered_views(ctx):
         c0, t0 = time.process_time(), time.perf_counter()
         run_view(ctx, v)
         rows.append({"view": v, "wall": time.perf_counter() - t0, "cpu": time.process_time() - c0,
-                     "reflective": ws.path(ws.view_file(v, "I0.png")).is_file()})
+                     "reflective": ws.path(ws.view_file(v, L.I0)).is_file()})
     refl = [r for r in rows if r["reflective"]]
     plain = [r for r in rows if not r["reflective"]]
     med = (lambda rs, k: float(np.median([r[k] for r in rs])) if rs else None)  # noqa: E731
@@ -299,11 +269,12 @@ def timing(ws, base: dict) -> dict:
             "median_wall_plain": med(plain, "wall"), "first_view_wall": rows[0]["wall"]}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.reflection")
-    ap.add_argument("--scene", default="mirror_room", help="tiny | mirror_room | a scene folder")
-    ap.add_argument("--out", type=Path, default=Path("out/bench_reflection"))
-    ap.add_argument("--repeats", type=int, default=3)
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--scene", default="mirror_room",
+                    help="tiny (generated in OUT) | mirror_room (sample_data/) | a scene folder")
+    ap.add_argument("--out", type=Path, default=Path("out/bench_reflection"),
+                    help="output folder (default out/bench_reflection)")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of the timed view (default 3)")
     ap.add_argument("--scale", type=float, default=1.0, help="reflection.work_scale")
     ap.add_argument("--multiview", action="store_true", help="reflection.multiview = true")
     ap.add_argument("--no-user-reflectors", action="store_true",
@@ -320,28 +291,39 @@ def main(argv=None) -> int:
     ap.add_argument("--timing", action="store_true",
                     help="seconds per view of the stage's run, in-process (wall and CPU)")
     ap.add_argument("--rows", help="ablation rows to run: comma-separated indices into ABLATION")
-    ap.add_argument("--heldout-neighbours", type=int, default=2)
+    ap.add_argument("--heldout-neighbours", type=int, default=2,
+                    help="--heldout: neighbour views predicting each held-out view (default 2)")
     ap.add_argument("--depth-noise", type=float, default=0.0,
                     help="smooth relative depth error of the GT workspace (MVS-like), e.g. 0.01 "
                          "(M0's source: what M0's vertex optimisation fixes)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="reflection config override for --ablation / --heldout / --timing "
-                         "(repeatable; VALUE parsed as JSON, e.g. optimise_m0_vertices=true)")
+                         "(repeatable; VALUE parsed as JSON, e.g. decompose.optimise_m0_vertices=true)")
     ap.add_argument("--m1-noise", type=float, default=0.0,
                     help="--ablation / --heldout: smooth relative error of every view's M1 depth "
                          "(mirror-world points), e.g. 0.02 (what M1's vertex optimisation fixes)")
-    args = ap.parse_args(argv)
+
+
+def _scene(args) -> Path:
+    from .common import SAMPLE, tiny_scene
+    if args.scene == "mirror_room":
+        return SAMPLE
+    if args.scene == "tiny":
+        return tiny_scene(args.out / "tiny_scene")
+    return Path(args.scene)
+
+
+def _write(args, result: dict) -> int:
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+def main(args: argparse.Namespace) -> int:
     if args.workspace is not None:
         return _score_workspace(args)
-    if args.scene == "mirror_room":
-        scene = REPO / "sample_data" / "mirror_room"
-    elif args.scene == "tiny":
-        from ..synthetic.generate import SynthOptions, generate
-        scene = args.out / "tiny_scene"
-        if not (scene / "cameras.json").is_file():
-            generate(SynthOptions("tiny", seed=3, progress=False), scene)
-    else:
-        scene = Path(args.scene)
+    scene = _scene(args)
     ws_dir = args.out / "ws"
     if ws_dir.exists():
         shutil.rmtree(ws_dir)
@@ -349,9 +331,9 @@ def main(argv=None) -> int:
     result: dict = {"scene": str(scene), "work_scale": args.scale, "depth_noise": args.depth_noise,
                     "m1_noise": args.m1_noise}
     if args.ablation or args.heldout or args.timing:
+        from ibr_pipeline.config import nest
         sets = {k: _json_or_str(v) for k, v in (a.split("=", 1) for a in args.set)}
         result["set"] = sets
-        from ..config import nest
         base = {"work_scale": args.scale, "detect": "off", **nest(sets)}
         if args.ablation:
             rows = ([ABLATION[int(i)] for i in args.rows.split(",")] if args.rows else None)
@@ -360,19 +342,17 @@ def main(argv=None) -> int:
             from .reflection_heldout import heldout
             result["heldout"] = heldout(ws, scene, base, args.heldout_neighbours, args.m1_noise)
         if args.timing:
-            result["timing"] = timing(ws, {"work_scale": args.scale, **sets})
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
-        print(json.dumps(result, indent=1))
-        return 0
+            result["timing"] = timing(ws, {"work_scale": args.scale, **nest(sets)})
+        return _write(args, result)
     t0 = time.perf_counter()
-    over = {"work_scale": args.scale, "multiview": args.multiview}
+    over = {"work_scale": args.scale, "decompose": {"multiview": args.multiview}}
     if args.no_user_reflectors:
         over["use_user_reflectors"] = False
     if args.no_decompose:
-        from ..config import build_config
-        from ..runner import StageContext
-        from ..stages.reflection import Loader, ReflectionConfig, get_planes
+        from ibr_pipeline.config import build_config
+        from ibr_pipeline.geometry.reflection_views import ReflectionConfig
+        from ibr_pipeline.runner import StageContext
+        from ibr_pipeline.stages.reflection import get_planes
         ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", over),
                            ws.scene())
         c0 = time.process_time()
@@ -380,27 +360,14 @@ def main(argv=None) -> int:
         result["planes_seconds"] = time.perf_counter() - t0
         result["planes_cpu_seconds"] = time.process_time() - c0
         result["planes"] = plane_accuracy(ws, scene)
-        result["candidates"] = json.loads(ws.path("reflection/planes.json").read_text())["candidates"]
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
-        print(json.dumps(result, indent=1))
-        return 0
+        result["candidates"] = json.loads(ws.path(L.PLANES).read_text())["candidates"]
+        return _write(args, result)
     run_stage(ws, over)
     result["stage_seconds"] = time.perf_counter() - t0
-    recs = [json.loads(p.read_text()) for p in ws.state_dir("reflection").glob("*.json")]
-    refl_views = [r["view"] for r in recs if any(k.endswith("I0.png") for k in r["outputs"])]
-    result["views"] = len(recs)
-    result["reflective_views"] = len(refl_views)
-    result["seconds_per_reflective_view"] = float(np.median(
-        [r["seconds"] for r in recs if r["view"] in refl_views])) if refl_views else None
-    result["seconds_per_plain_view"] = float(np.median(
-        [r["seconds"] for r in recs if r["view"] not in refl_views])) if len(refl_views) < len(recs) else None
+    result.update(_timings(ws))
     result["layers"] = layer_accuracy(ws, scene)
     result["planes"] = plane_accuracy(ws, scene)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
-    print(json.dumps(result, indent=1))
-    return 0
+    return _write(args, result)
 
 
 def _json_or_str(v: str):
@@ -411,8 +378,9 @@ def _json_or_str(v: str):
 
 
 def _timings(ws) -> dict:
+    """Views and median seconds per reflective / plain view, from the runner's records."""
     recs = [json.loads(p.read_text()) for p in ws.state_dir("reflection").glob("*.json")]
-    refl = [r for r in recs if any(k.endswith("I0.png") for k in r.get("outputs", {}))]
+    refl = [r for r in recs if any(k.endswith(L.I0) for k in r.get("outputs", {}))]
     plain = [r for r in recs if r not in refl]
     med = (lambda rs: float(np.median([r["seconds"] for r in rs])) if rs else None)  # noqa: E731
     return {"views": len(recs), "reflective_views": len(refl),
@@ -421,18 +389,13 @@ def _timings(ws) -> dict:
 
 def _score_workspace(args) -> int:
     """Layer (and, when planes were detected, plane) accuracy of a real workspace's outputs."""
-    from ..workspace import Workspace
+    from ibr_pipeline.workspace import Workspace
+
+    from .common import SAMPLE
     ws = Workspace(args.workspace)
-    scene = REPO / "sample_data" / "mirror_room" if args.scene == "mirror_room" else Path(args.scene)
+    scene = SAMPLE if args.scene == "mirror_room" else Path(args.scene)
     result = {"workspace": str(args.workspace), "scene": str(scene), **_timings(ws),
               "layers": layer_accuracy(ws, scene)}
-    if ws.path("reflection/planes.json").is_file():
+    if ws.path(L.PLANES).is_file():
         result["planes"] = plane_accuracy(ws, scene)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "reflection_bench.json").write_text(json.dumps(result, indent=1))
-    print(json.dumps(result, indent=1))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    return _write(args, result)

@@ -1,4 +1,4 @@
-"""`ibr bench SCENE`: the pipeline over a grid of settings that trade speed for quality.
+"""The settings of `ibr bench pipeline SCENE`: the pipeline over a grid that trades speed for quality.
 
 Each setting is a synthetic scene size (resolution, capture views) plus stage-config overrides
 (the same `stage.field=value` a user passes to `ibr run --set`). For each setting the bench
@@ -12,15 +12,18 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import InputError
+from ibr_pipeline import layout as L
 
-log = logging.getLogger("ibr_pipeline.bench")
+from .common import logger
+
+log = logger()
+
+VIEW_DIRS = "views/*"  # every view's folder (layout.view_dir), as a glob
 
 # Scene sizes for the bench (width, height, views): small enough to sweep on 2 cores.
 SCENE_DEFAULTS = {"tiny": (160, 120, 8), "mirror_room": (320, 240, 24), "glass_room": (320, 240, 24),
@@ -75,7 +78,7 @@ STABILITY_DEFAULTS = {"supersample": {"time_budget_s": 15}}
 
 def scene_folder(cache: Path, scene: str, seed: int, width: int, height: int, views: int) -> Path:
     """Generate (once) the synthetic scene for these options; returns its folder."""
-    from ..synthetic.generate import SynthOptions, generate
+    from ibr_pipeline.synthetic.generate import SynthOptions, generate
     key = hashlib.sha256(json.dumps([scene, seed, width, height, views]).encode()).hexdigest()[:10]
     out = cache / f"{scene}-{width}x{height}-{views}v-s{seed}-{key}"
     if not (out / "gt" / "scene.json").is_file():
@@ -90,12 +93,12 @@ def scene_folder(cache: Path, scene: str, seed: int, width: int, height: int, vi
 def model_size_bytes(ws: Path) -> dict:
     """Bytes on disk of what the renderer needs: per-view meshes, layer textures, images, network."""
     sizes = {"meshes": 0, "textures": 0, "network": 0}
-    for p in ws.glob("views/*/*"):
+    for p in ws.glob(f"{VIEW_DIRS}/*"):
         if p.suffix == ".ply":
             sizes["meshes"] += p.stat().st_size
-        elif p.name in ("I0.png", "I1.png", "beta.npy"):
+        elif p.name in (L.I0, L.I1, L.BETA):
             sizes["textures"] += p.stat().st_size
-    nn = ws / "nn" / "dsrnet.pt"
+    nn = ws / L.MODEL
     if nn.is_file():
         sizes["network"] = nn.stat().st_size
     return sizes
@@ -106,7 +109,7 @@ def _file_bytes(p: Path) -> int:
 
 
 def _render_ms(ws: Path, which: str) -> float | None:
-    t = ws / "renders" / which / "timings.json"
+    t = ws / L.render_file(which, "timings.json")
     if not t.is_file():
         return None
     d = json.loads(t.read_text())
@@ -118,7 +121,7 @@ def _render_ms(ws: Path, which: str) -> float | None:
 
 
 def _metrics(ws: Path) -> dict:
-    p = ws / "eval" / "metrics.json"
+    p = ws / L.EVAL_METRICS
     if not p.is_file():
         return {}
     d = json.loads(p.read_text())
@@ -129,7 +132,7 @@ def _stage_seconds(ws: Path) -> dict:
     """Task seconds per stage from the runner's records (sum over views), so a setting that reused
     another's up-to-date stages still reports what those stages cost."""
     out = {}
-    state = ws / ".ibr" / "state"
+    state = ws / ".ibr" / "state"   # the runner's records (workspace.py)
     for rec in list(state.glob("*.json")) + list(state.glob("*/*.json")):
         d = json.loads(rec.read_text())
         out[d["stage"]] = round(out.get(d["stage"], 0.0) + float(d.get("seconds", 0.0)), 3)
@@ -145,11 +148,12 @@ def _merge(a: dict, b: dict) -> dict:
 
 def run_setting(s: Setting, scene: str, seed: int, base: tuple[int, int, int], out: Path,
                 jobs: int = 1) -> dict:
-    from ..executors import make_executor
-    from ..pipeline import load_configs, run
-    from ..scene import cameras_from_json
-    from ..stages import STAGES
-    from ..workspace import Workspace
+    from ibr_pipeline.executors import make_executor
+    from ibr_pipeline.pipeline import load_configs, run
+    from ibr_pipeline.scene import cameras_from_json
+    from ibr_pipeline.stages import STAGES
+    from ibr_pipeline.workspace import Workspace
+
     from .degrade import degrade_input
 
     w, h, n = base
@@ -187,10 +191,10 @@ def run_setting(s: Setting, scene: str, seed: int, base: tuple[int, int, int], o
                       progress=False)
     wall = time.perf_counter() - t0
     sizes = model_size_bytes(ws_path)
-    n_views = max(1, len(list(ws_path.glob("views/*"))))
+    n_views = max(1, len(list(ws_path.glob(VIEW_DIRS))))
     secs = _stage_seconds(ws_path)
     pre = {k: v for k, v in secs.items() if k not in ("render_views", "evaluate")}
-    nn = ws_path / "nn" / "train.json"
+    nn = ws_path / L.TRAIN_JSON
     dsr = json.loads(nn.read_text()).get("validation", {}) if nn.is_file() else {}
     return {"setting": s.name, "group": s.group, "help": s.help, "scene": scene, "seed": seed,
             "width": w, "height": h, "views": n, "overrides": overrides, "reused": reused,
@@ -201,74 +205,26 @@ def run_setting(s: Setting, scene: str, seed: int, base: tuple[int, int, int], o
             "render_ms_single": _render_ms(ws_path, "test_single"),
             "metrics": _metrics(ws_path), "dsrnet": dsr,
             "model_bytes": sizes, "mb_per_view": round(sum(sizes.values()) / n_views / 1e6, 4),
-            "naive_mb_per_view": round(_file_bytes(ws_path / "global" / "mesh.ply") / n_views / 1e6, 4),
+            "naive_mb_per_view": round(_file_bytes(ws_path / L.GLOBAL_MESH) / n_views / 1e6, 4),
             "fallbacks": _fallbacks(ws_path)}
 
 
 def _fallbacks(ws: Path) -> list[str]:
     """What the pipeline did instead of failing, as the stages recorded it."""
     notes = []
-    rep = ws / "global" / "report.json"
+    rep = ws / L.GLOBAL_REPORT
     if rep.is_file():
         d = json.loads(rep.read_text())
         if d.get("unregistered"):
             notes.append(f"global_mesh: {len(d['unregistered'])} view(s) not registered, excluded")
-    for lj in ws.glob("views/*/layers.json"):
+    for lj in ws.glob(f"{VIEW_DIRS}/{L.LAYERS}"):
         d = json.loads(lj.read_text())
         if d.get("fallback"):
             notes.append(f"reflection {lj.parent.name}: {d['fallback']}")
         for x in d.get("discarded") or []:
             notes.append(f"reflection {lj.parent.name}: {x.get('name')} single-layer "
                          f"({x.get('discarded', 'discarded')})")
-    nn = ws / "nn" / "train.json"
+    nn = ws / L.TRAIN_JSON
     if nn.is_file() and json.loads(nn.read_text()).get("fallback"):
         notes.append(f"supersample: {json.loads(nn.read_text())['fallback']}")
     return notes
-
-
-def run_bench(args) -> int:
-    from ..synthetic.bench import machine
-    from .charts import draw_all
-    from .stability import stability_settings
-
-    if args.scene not in SCENE_DEFAULTS:
-        raise InputError(f"bench: unknown scene {args.scene!r} (choose from {', '.join(SCENE_DEFAULTS)})")
-    base = list(SCENE_DEFAULTS[args.scene])
-    for i, v in enumerate((args.width, args.height, args.views)):
-        if v is not None:
-            if v < 8:
-                raise InputError(f"bench: --{('width', 'height', 'views')[i]} {v} is too small")
-            base[i] = v
-    todo = settings(args.grid) + (stability_settings() if args.stability else [])
-    if args.list:
-        for s in todo:
-            print(f"{s.name:16s} [{s.group}] {s.help}")
-        return 0
-    if args.only:
-        unknown = set(args.only) - {s.name for s in todo}
-        if unknown:
-            raise InputError(f"bench: unknown setting(s) {', '.join(sorted(unknown))} (see --list)")
-        todo = [s for s in todo if s.name in args.only]
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    results = out / "results.jsonl"
-    if not args.charts_only:
-        from tqdm import tqdm
-        mach = machine()
-        for s in tqdm(todo, desc=f"bench {args.scene}", unit="setting"):
-            try:
-                rec = run_setting(s, args.scene, args.seed, tuple(base), out, args.jobs)
-            except Exception as e:  # a setting that crashes is a finding, not the end of the bench
-                log.error("bench: setting %s crashed: %s", s.name, e)
-                rec = {"setting": s.name, "group": s.group, "help": s.help, "scene": args.scene,
-                       "degrade": list(s.degrade), "crashed": f"{type(e).__name__}: {e}"}
-            rec["machine"] = mach
-            rec["time"] = time.strftime("%Y-%m-%dT%H:%M:%S")
-            with open(results, "a") as f:
-                f.write(json.dumps(rec) + "\n")
-    if not results.is_file():
-        raise InputError(f"{results}: no results yet (run without --charts-only first)")
-    written = draw_all(results, out)
-    for p in written:
-        print(p)
-    return 0

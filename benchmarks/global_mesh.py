@@ -1,6 +1,6 @@
-"""Benchmark of stage `global_mesh` (issue #4) against synthetic ground truth.
+"""Benchmark of stage `global_mesh` against synthetic ground truth.
 
-    python -m ibr_pipeline.bench.global_mesh [--scene tiny|mirror_room|sample|PATH] [--views 30]
+    ibr bench global_mesh [--scene tiny|mirror_room|sample|PATH] [--views 30]
         [--parts rgbd,mvs,sfm,mvs_speed] [--repeats 3] [--device cpu|cuda] [--output FILE.json]
 
 * rgbd: poses given, TSDF fusion of the depth frames with reflectors.json: F-score at 5 cm vs
@@ -16,20 +16,25 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ibr_pipeline import layout as L
+from ibr_pipeline.errors import InputError
+
+PARTS = ("rgbd", "mvs", "sfm", "mvs_speed")
+
 
 def _scene(name: str, views: int, work: Path, size: tuple[int, int] | None = None) -> Path:
     if name == "sample":
-        return Path(__file__).resolve().parents[2] / "sample_data" / "mirror_room"
+        from .common import SAMPLE
+        return SAMPLE
     if name not in ("tiny", "mirror_room"):
         return Path(name)
-    from ..synthetic.generate import SynthOptions, generate
+    from ibr_pipeline.synthetic.generate import SynthOptions, generate
     out = work / name
     w, h = size or (None, None)
     opts = SynthOptions(name, seed=0, width=w, height=h, views=None if name == "tiny" else views,
@@ -40,24 +45,25 @@ def _scene(name: str, views: int, work: Path, size: tuple[int, int] | None = Non
 
 
 def _run_stage(scene: Path, ws: Path, sets: list[str]) -> dict:
-    from ..cli import main as cli
+    from ibr_pipeline.cli import main as cli
     args = ["run", str(ws), "--input", str(scene), "--until", "global_mesh"]
     for s in sets + ["global_mesh.progress=false"]:
         args += ["--set", s]
     if cli(args) != 0:
         raise RuntimeError(f"global_mesh failed on {scene}")
-    return json.loads((ws / "global" / "report.json").read_text())
+    return json.loads((ws / L.GLOBAL_REPORT).read_text())
 
 
 def _fscore(scene: Path, ws: Path) -> dict:
-    from ..geometry.fusion import mirror_world_points
-    from ..geometry.mesh_metrics import distance_to_mesh, fscore, observed_points
-    from ..io.mesh import read_ply
-    from ..io.inputs import read_input
+    from ibr_pipeline.geometry.fusion import mirror_world_points
+    from ibr_pipeline.geometry.mesh_metrics import distance_to_mesh, fscore, observed_points
+    from ibr_pipeline.gt_workspace import gt_depth
+    from ibr_pipeline.io.inputs import read_input
+    from ibr_pipeline.io.mesh import read_ply
     sc = read_input(scene)
     cams = [v.camera for v in sc.views]
-    depths = [np.load(scene / "gt" / "geom" / (Path(v.name).stem + ".npz"))["depth"] for v in sc.views]
-    gt, mesh = read_ply(scene / "gt" / "mesh.ply"), read_ply(ws / "global" / "mesh.ply")
+    depths = [gt_depth(scene, v.name) for v in sc.views]
+    gt, mesh = read_ply(scene / "gt" / "mesh.ply"), read_ply(ws / L.GLOBAL_MESH)
     excl = lambda p: mirror_world_points(p, sc.reflectors, cams)  # noqa: E731
     res = fscore(mesh.vertices, mesh.faces, gt.vertices, gt.faces, observed_points(cams, depths),
                  tau=0.05, exclude=excl)
@@ -75,10 +81,10 @@ def bench_mvs_speed(scene: Path, repeats: int, device: str, threads: int = 1) ->
     import cv2
     import torch
 
-    from ..geometry.mvs import plane_sweep, select_sources
-    from ..io.images import read_image
-    from ..io.inputs import read_input
-    from ..stages.global_mesh import GlobalMeshConfig
+    from ibr_pipeline.geometry.mvs import plane_sweep, select_sources
+    from ibr_pipeline.io.images import read_image
+    from ibr_pipeline.io.inputs import read_input
+    from ibr_pipeline.stages.global_mesh import GlobalMeshConfig
     cfg = GlobalMeshConfig()
     sc = read_input(scene)
     full = {v.name: v.camera for v in sc.views}
@@ -111,24 +117,29 @@ def bench_mvs_speed(scene: Path, repeats: int, device: str, threads: int = 1) ->
             "runs": times, "device": device, "torch_threads": threads}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ibr_pipeline.bench.global_mesh", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--scene", default="tiny", help="tiny, mirror_room (generated), sample, or a folder")
     ap.add_argument("--views", type=int, default=30, help="capture views when generating mirror_room")
     ap.add_argument("--size", default=None, help="WxH when generating mirror_room (default 640x480)")
     ap.add_argument("--matching", default="auto", choices=("auto", "sequential", "exhaustive"),
                     help="global_mesh.matching for the sfm part")
-    ap.add_argument("--parts", default="rgbd,mvs,sfm,mvs_speed")
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    ap.add_argument("--parts", default=",".join(PARTS),
+                    help=f"comma-separated parts to run (default {','.join(PARTS)})")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of the rgbd and mvs_speed parts (3)")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="global_mesh.device")
     ap.add_argument("--threads", type=int, default=None, help="global_mesh.threads (pycolmap and "
                     "torch threads; default: the stage default)")
     ap.add_argument("--mvs-scale", type=float, default=None, help="global_mesh.mvs_scale (default: "
                     "1.0 for tiny, else the stage default)")
-    ap.add_argument("--output", default="bench_global_mesh.json")
-    args = ap.parse_args(argv)
+    ap.add_argument("--output", default="bench_global_mesh.json",
+                    help="JSON result (default bench_global_mesh.json)")
+
+
+def main(args: argparse.Namespace) -> int:
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    bad = [p for p in parts if p not in PARTS]
+    if bad:
+        raise InputError(f"--parts: unknown part(s) {bad} (choose from {', '.join(PARTS)})")
     out: dict = {"scene": args.scene, "machine_note": "2 shared cores unless stated", "results": {}}
     with tempfile.TemporaryDirectory(prefix="bench-gm-") as tmp:
         tmp = Path(tmp)
@@ -156,14 +167,15 @@ def main(argv=None) -> int:
                        "stage_total_s": rep["timings"]["total_s"],
                        "mvs_valid_fraction": rep.get("mvs_valid_fraction"), **_fscore(scene, tmp / "mvs")}
             elif part == "sfm":
-                from ..geometry.align import pose_errors
-                from ..scene import cameras_from_json, read_input
+                from ibr_pipeline.geometry.align import pose_errors
+                from ibr_pipeline.io.inputs import read_input
+                from ibr_pipeline.scene import cameras_from_json
                 rep = _run_stage(scene, tmp / "sfm", common + ["global_mesh.force_sfm=true",
                                                                f"global_mesh.matching={args.matching}"])
                 truth = {v.name: v.camera for v in read_input(scene).views}
-                est = cameras_from_json(tmp / "sfm" / "global" / "cameras.json")
+                est = cameras_from_json(tmp / "sfm" / L.REGISTERED_CAMERAS)
                 keep = Path(args.output).with_suffix(".sfm_cameras.json")  # for later analysis
-                keep.write_text((tmp / "sfm" / "global" / "cameras.json").read_text())
+                keep.write_text((tmp / "sfm" / L.REGISTERED_CAMERAS).read_text())
                 lo, hi = np.array([0, 0, 0]), np.array([5, 4, 2.7])  # room box (docs/SYNTHETIC.md)
                 diag = float(np.linalg.norm(hi - lo))
                 err = pose_errors(est, truth)
@@ -174,18 +186,11 @@ def main(argv=None) -> int:
                        "reprojection_error_px": rep["reprojection_error_px"], "alignment": rep.get("alignment"),
                        "pose_errors": err,
                        "center_error_pct_of_room_diagonal": 100 * err["center_m"]["median"] / diag}
-            elif part == "mvs_speed":
+            else:  # mvs_speed
                 res = bench_mvs_speed(scene, args.repeats, args.device, args.threads or 1)
-            else:
-                print(f"unknown part {part!r}", file=sys.stderr)
-                return 2
             res["wall_s"] = time.perf_counter() - t0
             out["results"][part] = res
             print(part, json.dumps(res, indent=1, default=float), flush=True)
     Path(args.output).write_text(json.dumps(out, indent=1, default=float))
     print(f"wrote {args.output}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,1 +1,0 @@
-"""Benchmarks and reports across stages (issue #10)."""
