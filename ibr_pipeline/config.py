@@ -197,6 +197,10 @@ def _merge(cls: type[Options], name: str, values: dict[str, Any], layer: dict) -
     for key, raw in layer.items():
         full = f"{name}.{key}"
         if key not in types:
+            nested = [f"{name}.{f}.{key}" for f, t in types.items()
+                      if _is_options(t) and key in field_types(t)]
+            if nested:
+                raise ConfigError(full, f"unknown field; did you mean {' or '.join(nested)}?")
             known = ", ".join(types) or "none"
             raise ConfigError(full, f"unknown field (known fields: {known})")
         if _is_options(types[key]):

@@ -143,7 +143,7 @@ def test_bad_input_and_config(tiny_ws, tmp_path):
                      {"decompose": {"min_neighbours": 9, "max_neighbours": 2}})
     with pytest.raises(ConfigError, match="reflection.decompose.grid"):
         build_config(ReflectionConfig, "reflection", {"decompose": {"grid": [40]}})
-    with pytest.raises(ConfigError, match="unknown field"):
+    with pytest.raises(ConfigError, match="did you mean reflection.decompose.min_neighbours"):
         build_config(ReflectionConfig, "reflection", {"min_neighbours": 9})   # a nested one
     scene, ws = tiny_ws
     import shutil
