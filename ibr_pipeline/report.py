@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from statistics import median
 
+from . import layout as L
 from .errors import InputError
 
 
@@ -225,9 +226,9 @@ def build(ws_root: Path) -> Report:
                             f"{len(scene.get('reflectors', []))} user-given reflector(s).")])
     _timings(rep)
     _json_table(rep, ws_root / "global" / "report.json", "Global mesh and poses (global_mesh)")
-    _per_view(rep, "depth_report.json", "Per-view depth refinement (view_depth)")
-    _per_view(rep, "mesh_report.json", "Per-view meshes (view_mesh)")
-    _per_view(rep, "layers.json", "Reflection layers (reflection)")
+    _per_view(rep, L.DEPTH_REPORT, "Per-view depth refinement (view_depth)")
+    _per_view(rep, L.MESH_REPORT, "Per-view meshes (view_mesh)")
+    _per_view(rep, L.LAYERS, "Reflection layers (reflection)")
     _json_table(rep, ws_root / "eval" / "metrics.json", "Held-out evaluation (evaluate)")
     _json_table(rep, ws_root / "nn" / "train.json", "DSRNet training (supersample)")
     _media(rep)

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import layout as L
 from ..scene import Camera
 from .warp import depth_motion
 
-MODEL_KEY = "nn/dsrnet.pt"
+MODEL_KEY = L.MODEL
 
 
 def upsample(color: np.ndarray, scale: int, mode: str = "bilinear") -> np.ndarray:

@@ -26,8 +26,7 @@ from ..runner import Stage, StageContext
 
 log = logging.getLogger("ibr_pipeline.global_mesh")
 
-SFM_FILES = ("sfm/cameras.txt", "sfm/images.txt", "sfm/points3D.txt")
-OUTPUTS = SFM_FILES + (L.REGISTERED_CAMERAS, L.GLOBAL_MESH, L.GLOBAL_REPORT)
+OUTPUTS = L.SFM_FILES + (L.REGISTERED_CAMERAS, L.GLOBAL_MESH, L.GLOBAL_REPORT)
 
 
 @dataclass(frozen=True)

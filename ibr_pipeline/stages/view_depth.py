@@ -18,7 +18,7 @@ from ..config import StageConfig, param
 from ..runner import Stage, StageContext
 from .common import registered_views
 
-OUTPUTS = ("depth_init.npy", "depth.npy", "normal.npy", "edges.png", "mask.png", "depth_report.json")
+OUTPUTS = (L.DEPTH_INIT, L.DEPTH, L.NORMAL, L.EDGES, L.REFINE_MASK, L.DEPTH_REPORT)
 
 
 @dataclass(frozen=True)
