@@ -122,7 +122,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--views", type=int, default=30, help="capture views when generating mirror_room")
     ap.add_argument("--size", default=None, help="WxH when generating mirror_room (default 640x480)")
     ap.add_argument("--matching", default="auto", choices=("auto", "sequential", "exhaustive"),
-                    help="global_mesh.matching for the sfm part")
+                    help="poses.matching for the sfm part")
     ap.add_argument("--parts", default=",".join(PARTS),
                     help=f"comma-separated parts to run (default {','.join(PARTS)})")
     ap.add_argument("--repeats", type=int, default=3, help="runs of the rgbd and mvs_speed parts (3)")
@@ -170,8 +170,8 @@ def main(args: argparse.Namespace) -> int:
                 from ibr_pipeline.geometry.align import pose_errors
                 from ibr_pipeline.io.inputs import read_input
                 from ibr_pipeline.scene import cameras_from_json
-                rep = _run_stage(scene, tmp / "sfm", common + ["global_mesh.force_sfm=true",
-                                                               f"global_mesh.matching={args.matching}"])
+                rep = _run_stage(scene, tmp / "sfm", common + ["poses.force_sfm=true",
+                                                               f"poses.matching={args.matching}"])
                 truth = {v.name: v.camera for v in read_input(scene).views}
                 est = cameras_from_json(tmp / "sfm" / L.REGISTERED_CAMERAS)
                 keep = Path(args.output).with_suffix(".sfm_cameras.json")  # for later analysis

@@ -4,7 +4,8 @@ A test or benchmark of one stage needs the stages before it; built from ground t
 exact (or honestly perturbed), so what is measured is the stage itself. `ingest` runs for real;
 then, up to `through`, the files of layout.py are written from the scene's gt/ folder:
 
-  global_mesh  global/cameras.json = the synthetic cameras; global/mesh.ply = the GT mesh
+  global_mesh  the `poses` outputs: global/cameras.json = the synthetic cameras, metric frame
+               (global/poses.json), the input's reflectors; global/mesh.ply = the GT mesh
                (`global_mesh="gt"`), a TSDF fusion of the exact gt/geom depth at `voxel` metres
                ("tsdf": occlusion edges rounded and misplaced by up to a voxel, as a real fused
                mesh), or none
@@ -101,6 +102,12 @@ def write_gt_workspace(scene: Path, ws_dir: Path, through: str = "view_mesh", *,
         return ws
     gt = GroundTruth(scene)
     ws.write_text(L.REGISTERED_CAMERAS, cameras_to_json(gt.cameras))
+    ws.write_text(L.HELDOUT_CAMERAS, cameras_to_json({}))
+    ws.write_json(L.POSES_REPORT, {"units": "metres", "scale": 1.0, "pose_source": "gt",
+                                   "alignment": {"method": "synthetic ground truth"}})
+    sc = ws.scene()
+    ws.write_json(L.SCENE_REFLECTORS, {"format": "ibr_pipeline.reflectors/1", "units": "metres",
+                                       "reflectors": [r.to_dict() for r in sc.reflectors]})
     if global_mesh == "gt":
         shutil.copyfile(scene / "gt" / "mesh.ply", ws.path(L.GLOBAL_MESH))
     elif global_mesh == "tsdf":

@@ -18,12 +18,19 @@ SCENE = "scene.json"                              # the scene manifest
 INPUT = "input/"
 USER_REFLECTORS = "input/reflectors.json"         # user-given mirror planes / masks
 INPUT_CAMERAS = "input/cameras.json"
+INPUT_SPARSE = "input/sparse/0"                   # a COLMAP model given with the images
+GT_CAMERAS = "input/gt/cameras.json"              # synthetic captures posed by SfM: the true poses
 TEST_CAMERAS = "input/gt/test_cameras.json"       # synthetic scenes: held-out cameras
 FLY_CAMERAS = "input/gt/flythrough_cameras.json"  # synthetic scenes: a camera path
 
+# --- poses ---------------------------------------------------------------------------------------
+SFM_FILES = ("sfm/cameras.txt", "sfm/images.txt", "sfm/points3D.txt")   # scene frame
+REGISTERED_CAMERAS = "global/cameras.json"        # training views: the poses every later stage uses
+HELDOUT_CAMERAS = "global/heldout_cameras.json"   # held-out images (poses.holdout_every), scene frame
+POSES_REPORT = "global/poses.json"                # scene frame (units, scale), depth ranges, checks
+SCENE_REFLECTORS = "global/reflectors.json"       # the input's reflectors in the scene frame
+
 # --- global_mesh ---------------------------------------------------------------------------------
-SFM_FILES = ("sfm/cameras.txt", "sfm/images.txt", "sfm/points3D.txt")
-REGISTERED_CAMERAS = "global/cameras.json"        # the poses every later stage uses
 GLOBAL_MESH = "global/mesh.ply"                   # G (Xu §4.1)
 GLOBAL_REPORT = "global/report.json"
 
@@ -106,10 +113,44 @@ def renderer_files(ws, view: str, layers: bool = True) -> list[str]:
 
 def registered_cameras(ws) -> dict:
     """{view name: Camera} of the views `global_mesh` registered (the poses every later stage
-    uses). Raises InputError when `global_mesh` has not run yet."""
+    uses). Raises InputError when `poses` has not run yet."""
     from .errors import InputError
     from .scene import cameras_from_json
     p = ws.path(REGISTERED_CAMERAS)
     if not p.is_file():
-        raise InputError(f"{p}: no registered cameras yet (run `ibr global_mesh` first)")
+        raise InputError(f"{p}: no registered cameras yet (run `ibr poses` first)")
     return cameras_from_json(p)
+
+
+def heldout_cameras(ws) -> dict:
+    """{image name: Camera} of the images `poses` held out (empty when none were)."""
+    from .scene import cameras_from_json
+    p = ws.path(HELDOUT_CAMERAS)
+    return cameras_from_json(p) if p.is_file() else {}
+
+
+def scene_reflectors(ws) -> tuple:
+    """The input's reflectors in the scene frame (what `poses` wrote; masks are workspace keys)."""
+    from .errors import InputError
+    from .scene import Reflector
+    p = ws.path(SCENE_REFLECTORS)
+    if not p.is_file():
+        return ()
+    try:
+        data = json.loads(p.read_text())
+        return tuple(Reflector.from_dict(d, f"{p}: reflector {i}")
+                     for i, d in enumerate(data["reflectors"]))
+    except (OSError, json.JSONDecodeError, KeyError, TypeError):
+        raise InputError(f"{p}: malformed (rerun `ibr poses`)") from None
+
+
+def poses_report(ws) -> dict:
+    """global/poses.json: the scene frame (units, scale, transform), depth ranges, checks."""
+    from .errors import InputError
+    p = ws.path(POSES_REPORT)
+    if not p.is_file():
+        return {}
+    try:
+        return json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError):
+        raise InputError(f"{p}: malformed JSON (rerun `ibr poses`)") from None

@@ -3,6 +3,7 @@ the iterative closest point (ICP) method"; SfM is up to scale, so it is brought 
 Sim(3) estimated from the depth frames).
 
 * `umeyama`: closed-form least-squares Sim(3) between corresponding points (Umeyama 1991).
+* `transform_camera`, `transform_reflector`: a camera / reflector plane under a Sim(3) of the world.
 * `depth_scale`: robust metric scale of an SfM model from depth measured at its keypoints.
 * `icp_refine`: open3d point-to-point ICP with scale, to refine an initial Sim(3).
 * `pose_errors`: rotation / camera-centre errors after aligning estimated cameras to the truth.
@@ -47,6 +48,17 @@ def transform_camera(cam: Camera, s: float, R: np.ndarray, t: np.ndarray) -> Cam
     T[:3, :3] = R_new
     T[:3, 3] = t_new
     return Camera(cam.K, T, cam.width, cam.height)
+
+
+def transform_reflector(refl, s: float, R: np.ndarray, t: np.ndarray):
+    """The reflector after mapping the world by x' = s R x + t: n' = R n, d' = s d - n' . t
+    (from n . x + d = 0 with x = R^T (x' - t) / s); the polygon moves with the world."""
+    import dataclasses
+    n = np.asarray(R, np.float64) @ np.asarray(refl.plane[:3], np.float64)
+    d = s * float(refl.plane[3]) - float(n @ np.asarray(t, np.float64))
+    poly = None if refl.polygon is None else tuple(
+        tuple(float(x) for x in s * np.asarray(R) @ np.asarray(p, np.float64) + t) for p in refl.polygon)
+    return dataclasses.replace(refl, plane=(*map(float, n), d), polygon=poly)
 
 
 def depth_scale(sfm_depths: np.ndarray, sensor_depths: np.ndarray) -> float:

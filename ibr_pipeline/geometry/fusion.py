@@ -163,7 +163,8 @@ class FusionOptions(Options):
                               "auto_voxel_size: twice the depth frames' pixel footprint at their "
                               "median depth, rounded to 5 mm", min=0.0, max=1.0)
     trunc_voxels: float = param(4.0, "truncation distance in voxels", min=1.0, max=64.0)
-    depth_max: float = param(6.0, "ignore depth beyond this (metres)", min=0.1, max=1000.0)
+    depth_max: float = param(0.0, "ignore depth beyond this (scene units); 0 = the far end of the "
+                             "scene points' depth ranges (global/poses.json)", min=0.0, max=1e6)
     weight_threshold: float = param(0.5, "marching cubes only where the summed TSDF weight "
                                     "(frames) reaches this", min=0.0, max=1000.0)
     min_component: float = param(0.002, "drop connected components below this fraction of all "
@@ -229,6 +230,7 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
     if options.voxel_size <= 0:
         raise ValueError("tsdf_fuse: voxel_size must be > 0 (0 = auto: resolve it with "
                          "auto_voxel_size first)")
+    far = options.depth_max if options.depth_max > 0 else 1e6  # 0: no limit (the stage resolves it)
     dev = o3c.Device(options.device)
     vbg = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
@@ -250,7 +252,7 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
             color = np.full((h, w, 3), 0.5, np.float32)
         elif color.shape[:2] != (h, w):
             color = cv2.resize(np.asarray(color, np.float32), (w, h), interpolation=cv2.INTER_AREA)
-        if not np.any((depth > 0) & (depth < options.depth_max)):
+        if not np.any((depth > 0) & (depth < far)):
             skipped += 1  # nothing to integrate (all masked or out of range): open3d would abort
             continue
         t0 = time.perf_counter()
@@ -258,9 +260,9 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
         c_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color, np.float32), device=dev))
         K = o3c.Tensor(cam.K, o3c.float64)
         T = o3c.Tensor(cam.cam_from_world, o3c.float64)
-        coords = vbg.compute_unique_block_coordinates(d_img, K, T, 1.0, options.depth_max,
+        coords = vbg.compute_unique_block_coordinates(d_img, K, T, 1.0, far,
                                                       options.trunc_voxels)
-        vbg.integrate(coords, d_img, c_img, K, T, 1.0, options.depth_max, options.trunc_voxels)
+        vbg.integrate(coords, d_img, c_img, K, T, 1.0, far, options.trunc_voxels)
         t_int += time.perf_counter() - t0
         n += 1
     stats = {"frames": n, "skipped_empty_frames": skipped, "ms_per_frame": 1000 * t_int / max(n, 1)}

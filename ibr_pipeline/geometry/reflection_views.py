@@ -227,7 +227,8 @@ def registered_views(ws, scene) -> list[str]:
 
 
 def user_reflectors_key(ws) -> list[str]:
-    return [L.USER_REFLECTORS] if ws.exists(L.USER_REFLECTORS) else []
+    """The user's reflectors in the scene frame (written by `poses` from input/reflectors.json)."""
+    return [L.SCENE_REFLECTORS] if ws.exists(L.USER_REFLECTORS) else []
 
 
 def planes_fingerprint(ws, scene, cfg: "ReflectionConfig") -> str:
@@ -271,10 +272,8 @@ def compute_planes(loader: Loader) -> dict:
     ws, cfg = loader.ws, loader.cfg
     user = []
     if cfg.use_user_reflectors and ws.exists(L.USER_REFLECTORS):
-        from ..scene import read_reflectors
-        for r in read_reflectors(ws.path(L.USER_REFLECTORS)):
+        for r in L.scene_reflectors(ws):
             d = r.to_dict()
-            d["masks"] = {v: f"input/{k}" for v, k in r.masks.items()}
             d["source"] = "user"
             user.append(d)
     detected, candidates = [], []

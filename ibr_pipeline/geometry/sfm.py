@@ -56,6 +56,21 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
 
     if matching not in ("sequential", "exhaustive"):
         raise ValueError(f"matching must be 'sequential' or 'exhaustive', got {matching!r}")
+    # COLMAP's per-image glog lines drown the progress output
+    # (errors still show; the summary is logged by us, below)
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(level, 2)
+    try:
+        return _run_sfm(pycolmap, image_dir, names, work_dir, matching, intrinsics, overlap, threads,
+                        max_image_size, init_min_inliers, abs_pose_min_inliers, init_min_tri_angle,
+                        peak_threshold, close_loop)
+    finally:
+        pycolmap.logging.minloglevel = level
+
+
+def _run_sfm(pycolmap, image_dir, names, work_dir, matching, intrinsics, overlap, threads,
+             max_image_size, init_min_inliers, abs_pose_min_inliers, init_min_tri_angle,
+             peak_threshold, close_loop) -> SfMResult:
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     db = work_dir / "database.db"
@@ -126,6 +141,9 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
                  model_sizes=sorted((m.num_reg_images() for m in models.values()), reverse=True),
                  points=rec.num_points3D(),
                  reprojection_error_px=float(rec.compute_mean_reprojection_error()))
+    log.info("sfm: %d/%d images registered in %d model(s), %d points, %.2f px reprojection error, "
+             "%.1f s", len(cams), len(names), len(models), stats["points"],
+             stats["reprojection_error_px"], stats["extract_s"] + stats["match_s"] + stats["map_s"])
     return SfMResult(cams, rec, stats)
 
 

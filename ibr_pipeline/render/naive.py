@@ -80,6 +80,19 @@ class NaiveWarp:
             self._image[name] = np.asarray(img[..., :3], np.float32)
         return self._image[name]
 
+    def nearest(self, camera: Camera, exclude=()) -> tuple[str, np.ndarray]:
+        """The captured image nearest to `camera` by Eq. 14, unwarped (the floor every IBR paper
+        compares with), resized to the camera's size when it differs."""
+        dist = view_distance(self._axes, self._centers, camera.viewing_direction, camera.center,
+                             lam=self.lam)
+        skip = set(exclude)
+        name = next(self._names[i] for i in np.argsort(dist) if self._names[i] not in skip)
+        img = self._view_image(name)
+        if img.shape[:2] != (camera.height, camera.width):
+            import cv2
+            img = cv2.resize(img, camera.size, interpolation=cv2.INTER_AREA)
+        return name, img
+
     def render(self, camera: Camera, exclude=()) -> tuple[np.ndarray, np.ndarray, float]:
         """(H, W, 3) colour, (H, W) bool covered-by-a-view, and the frame's milliseconds (the
         captured views' depth maps are preprocessing: ray-cast once, outside the timing)."""

@@ -9,11 +9,12 @@ The files each stage reads and writes are listed in docs/PIPELINE.md.
 from __future__ import annotations
 
 from ..runner import Stage
-from . import (evaluate, global_mesh, ingest, reflection, render_views, supersample, view_depth,
-               view_mesh)
+from . import (evaluate, global_mesh, ingest, poses, reflection, render_views, supersample,
+               view_depth, view_mesh)
 
 STAGES: tuple[Stage, ...] = (
     ingest.STAGE,
+    poses.STAGE,
     global_mesh.STAGE,
     view_depth.STAGE,
     view_mesh.STAGE,

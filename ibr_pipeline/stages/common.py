@@ -1,10 +1,31 @@
-"""What every stage after `global_mesh` shares: the registered views, in scene order."""
+"""What every stage after `poses` shares: the registered views, cameras of the input in the scene
+frame."""
 from __future__ import annotations
 
-from ..layout import registered_cameras
+from .. import layout as L
 
 
 def registered_views(ctx) -> list[str]:
-    """Stage.views for every stage after global_mesh: registered views, in scene order."""
-    cams = registered_cameras(ctx.ws)
+    """Stage.views for every stage after poses: registered training views, in scene order."""
+    cams = L.registered_cameras(ctx.ws)
     return [n for n in ctx.scene.names if n in cams]
+
+
+def input_cameras(ctx, key: str) -> dict:
+    """{name: Camera} of an input camera file (gt/test_cameras.json, ...) mapped into the scene
+    frame: by the Sim(3) from the true to the SfM frame when the poses came from SfM and the
+    input has its true cameras (gt/cameras.json), else by the input -> scene map of `poses`."""
+    import numpy as np
+
+    from ..geometry.align import transform_camera
+    from ..scene import cameras_from_json
+    p = ctx.ws.path(key)
+    if not p.is_file():
+        return {}
+    cams = cameras_from_json(p)
+    frame = L.poses_report(ctx.ws)
+    m = frame.get("gt_to_scene") if frame.get("pose_source") == "sfm" else frame.get("transform")
+    if not m or (m["scale"] == 1.0 and np.allclose(m["R"], np.eye(3)) and not np.any(m["t"])):
+        return cams
+    R, t = np.asarray(m["R"], np.float64), np.asarray(m["t"], np.float64)
+    return {n: transform_camera(c, float(m["scale"]), R, t) for n, c in cams.items()}

@@ -6,6 +6,7 @@ ground truth. Methods compared on the same cameras:
   single   the same renderer with the decomposition off (renders/test_single; ~InsideOut)
   oracle   the same renderer on the representation built from GT depth and GT layers
            (`render/oracle.py`; synthetic inputs only) — the ceiling of the reconstruction stages
+  nearest  the captured image nearest to the camera (Eq. 14), unwarped
   naive    the naïve diffuse warp (`render/naive.py`): the nearest captured image that sees each
            pixel, warped with the global mesh's depth only (no per-view meshes, blending or
            layers) — the floor; its ms/frame is measured here (numpy + open3d ray casting, CPU)
@@ -52,7 +53,7 @@ def _gt_image_key(ctx: StageContext, s: str, name: str, source: str) -> str | No
         return f"input/gt/test/images/{name}"
     if source == "flythrough":
         return f"input/gt/flythrough/images/{name}"
-    if source == "leave_one_out":
+    if source in ("leave_one_out", "heldout_captures"):
         return ctx.scene.view(name).image
     return None
 
@@ -152,7 +153,7 @@ def _reflector_mask(ctx: StageContext, name: str, source: str, shape):
             with np.load(geom) as z:
                 return np.isin(z["material"], kinds)
         return None
-    if source == "leave_one_out":
+    if source in ("leave_one_out", "heldout_captures"):
         p = ws.path(f"input/gt/beta/{Path(name).stem}.png")
         if p.is_file():
             return read_image(p)[..., 0] > 0
@@ -161,6 +162,16 @@ def _reflector_mask(ctx: StageContext, name: str, source: str, shape):
             b = np.load(p)
             return b > 0 if b.shape == shape else None
     return None
+
+
+def _holes(ctx: StageContext, s: str) -> dict:
+    """{frame name: fraction of its pixels no view covered} from renders/<s>/timings.json."""
+    p = ctx.ws.path(L.render_file(s, "timings.json"))
+    try:
+        frames = json.loads(p.read_text()).get("frames", []) if p.is_file() else []
+    except (OSError, json.JSONDecodeError):
+        raise InputError(f"{p}: malformed JSON") from None
+    return {f["name"]: f["holes"] for f in frames if "holes" in f and "name" in f}
 
 
 def _scores(ref, img, mask, with_flip: bool) -> dict:
@@ -212,7 +223,8 @@ def run(ctx: StageContext) -> None:
     oracle = _oracle_model(ctx) if cfg.oracle and source in ("heldout", "leave_one_out") else None
     naive = _naive_model(ctx) if cfg.naive else None
     naive_ms = []
-    rows = {"ours": [], "single": [], "oracle": [], "naive": []}
+    rows = {"ours": [], "single": [], "oracle": [], "naive": [], "nearest": []}
+    holes = _holes(ctx, "test")
     per_view = []
     for i, (name, cam) in enumerate(test.items()):
         key = _gt_image_key(ctx, "test", name, source)
@@ -222,7 +234,8 @@ def run(ctx: StageContext) -> None:
             raise InputError(f"{ws.path(key)}: ground truth is {ref.shape[1]}x{ref.shape[0]}, "
                              f"the render {ours.shape[1]}x{ours.shape[0]}")
         mask = _reflector_mask(ctx, name, source, ref.shape[:2])
-        entry = {"name": name, "reflector_pixels": int(mask.sum()) if mask is not None else 0}
+        entry = {"name": name, "reflector_pixels": int(mask.sum()) if mask is not None else 0,
+                 "holes": holes.get(name)}
         imgs = {"ours": ours}
         if single:
             imgs["single"] = read_image(ws.path(L.render_file("test_single", f"{i:04d}.png")))
@@ -233,6 +246,8 @@ def run(ctx: StageContext) -> None:
             img, _, ms = naive.render(cam, exclude=(name,) if source == "leave_one_out" else ())
             imgs["naive"] = img
             naive_ms.append(ms)
+            entry["nearest_view"], imgs["nearest"] = naive.nearest(
+                cam, exclude=(name,) if source == "leave_one_out" else ())
         for k, img in imgs.items():
             sc = _scores(ref, img, mask, cfg.flip)
             rows[k].append(sc)
@@ -246,11 +261,13 @@ def run(ctx: StageContext) -> None:
         oracle.release()
     methods = {k: mean_metrics(v) for k, v in rows.items() if v}
     summary = {k: v for k, v in methods["ours"].items()}
-    for k in ("single", "oracle", "naive"):
+    for k in ("single", "oracle", "naive", "nearest"):
         for m, v in methods.get(k, {}).items():
             summary[f"{k}_{m}"] = v
     if naive_ms:
         summary["naive_ms"] = float(np.median(naive_ms))
+    if holes:  # pixels no view covers, filled by push-pull (render_views timings)
+        summary["holes"] = float(np.mean(list(holes.values())))
     if "single" in methods and methods["ours"].get("psnr_mask") is not None:
         summary["reflector_gain_db"] = methods["ours"]["psnr_mask"] - methods["single"]["psnr_mask"]
     if "oracle" in methods:
@@ -277,9 +294,10 @@ def run(ctx: StageContext) -> None:
         _energy_chart(ws.path(L.EVAL_ENERGY_PNG), hist)
     ws.write_json(L.EVAL_METRICS, result)
     log.info("evaluate: PSNR ours %.2f dB (reflectors %s), single-layer %s, oracle %s, naive "
-             "warp %s", summary["psnr"], _fmt(summary.get("psnr_mask")),
+             "warp %s, nearest image %s; holes %s", summary["psnr"], _fmt(summary.get("psnr_mask")),
              _fmt(summary.get("single_psnr")), _fmt(summary.get("oracle_psnr")),
-             _fmt(summary.get("naive_psnr")))
+             _fmt(summary.get("naive_psnr")), _fmt(summary.get("nearest_psnr")),
+             "n/a" if "holes" not in summary else f"{100 * summary['holes']:.1f} %")
 
 
 def _fmt(v) -> str:
@@ -303,6 +321,9 @@ def _oracle_model(ctx: StageContext):
     root = ctx.ws.input_root
     if not (root / "gt" / "geom").is_dir() or not (root / "gt" / "mesh.ply").is_file():
         return None
+    # the oracle lives in the true frame: only where the scene frame is that frame (given poses)
+    if not (root / "cameras.json").is_file() or L.poses_report(ctx.ws).get("pose_source") == "sfm":
+        return None
     return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer)
 
 
@@ -320,7 +341,7 @@ def _chart(path: Path, methods: dict) -> None:
     for ax, (key, title) in zip(axes, groups):
         vals = [methods[m].get(key) for m in names]
         ax.bar(names, [np.nan if v is None else v for v in vals],
-               color=["tab:blue", "tab:orange", "tab:green", "tab:gray"][:len(names)])
+               color=["tab:blue", "tab:orange", "tab:green", "tab:gray", "tab:brown"][:len(names)])
         ax.set_title(title, fontsize=9)
         for j, v in enumerate(vals):
             if v is not None:
@@ -332,4 +353,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="2", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="3", run=run, inputs=inputs, outputs=outputs)

@@ -3,8 +3,9 @@
 
 Render sets, each `renders/<set>/NNNN.png` + `timings.json` + `cameras.json` (the cameras, in the
 cameras.json format, so `evaluate` and `ibr render` know what was rendered):
-  test         the input's held-out cameras (gt/test_cameras.json); when the input has none, a
-               leave-one-out set: every registered capture view rendered from the others
+  test         the input's held-out cameras (gt/test_cameras.json, in the scene frame); else the
+               images `poses` held out (poses.holdout_every); else a leave-one-out set: every
+               registered capture view rendered from the others
   test_single  the same cameras with the single-layer baseline (decomposition off), if `baseline`
   fly          gt/flythrough_cameras.json, or a smooth path through the registered cameras
   fly_single   the fly-through with the single-layer baseline, if `baseline`
@@ -20,7 +21,7 @@ from .. import layout as L
 from ..config import StageConfig, param
 from ..render.ibr import RenderSettings
 from ..runner import Stage, StageContext
-from .common import registered_views
+from .common import input_cameras, registered_views
 
 log = logging.getLogger("ibr_pipeline.render_views")
 
@@ -36,12 +37,6 @@ class RenderViewsConfig(StageConfig):
                                      "(§5.1)")
 
 
-def _cameras(ctx: StageContext, key: str) -> dict:
-    from ..scene import cameras_from_json
-    p = ctx.ws.path(key)
-    return cameras_from_json(p) if p.is_file() else {}
-
-
 def render_sets(ctx: StageContext) -> dict[str, dict]:
     """{set: {"cameras": [(name, Camera)], "exclude": [names or None], "source": str}} — a pure
     function of the workspace and config, shared by the inputs/outputs declarations and run()."""
@@ -50,10 +45,12 @@ def render_sets(ctx: StageContext) -> dict[str, dict]:
     cams = L.registered_cameras(ctx.ws)
     names = [n for n in ctx.scene.names if n in cams]
     loo = {"cameras": [(n, cams[n]) for n in names], "exclude": names, "source": "leave_one_out"}
-    test = _cameras(ctx, L.TEST_CAMERAS)
+    test, src = input_cameras(ctx, L.TEST_CAMERAS), "heldout"
+    if not test:
+        test, src = L.heldout_cameras(ctx.ws), "heldout_captures"
     sets = {"test": {"cameras": list(test.items()), "exclude": [None] * len(test),
-                     "source": "heldout"} if test else dict(loo)}
-    fly = _cameras(ctx, L.FLY_CAMERAS)
+                     "source": src} if test else dict(loo)}
+    fly = input_cameras(ctx, L.FLY_CAMERAS)
     if fly:
         fly_list, src = list(fly.items()), "flythrough"
     else:
@@ -72,7 +69,7 @@ def render_sets(ctx: StageContext) -> dict[str, dict]:
 
 
 def inputs(ctx: StageContext) -> list[str]:
-    keys = [L.REGISTERED_CAMERAS]
+    keys = [L.REGISTERED_CAMERAS, L.HELDOUT_CAMERAS, L.POSES_REPORT]
     if not ctx.ws.path(L.REGISTERED_CAMERAS).is_file():
         return keys
     for v in registered_views(ctx):
@@ -138,4 +135,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="render_views", help="view selection and blending into novel views (Xu §5.1)",
-              config=RenderViewsConfig, version="1", run=run, inputs=inputs, outputs=outputs)
+              config=RenderViewsConfig, version="2", run=run, inputs=inputs, outputs=outputs)

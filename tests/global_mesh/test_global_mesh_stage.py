@@ -33,7 +33,9 @@ def test_rgbd_fusion_with_reflectors_is_accurate(tiny_scene, tmp_path):
     assert main(["run", str(ws), "--input", str(scene_dir), "--until", "global_mesh",
                  "--set", "global_mesh.progress=false"]) == 0
     rep = json.loads((ws / "global" / "report.json").read_text())
-    assert rep["units"] == "metres" and rep["unregistered"] == [] and len(rep["registered"]) == 8
+    poses = json.loads((ws / "global" / "poses.json").read_text())
+    assert rep["units"] == poses["units"] == "metres" and poses["scale"] == 1.0
+    assert poses["unregistered"] == [] and len(poses["registered"]) == 8
     assert rep["counts"]["reflector_pixels"] > 0
     # voxel_size 0 (default) = auto: a 5 mm multiple in the allowed range, recorded as auto
     v = rep["voxel_size"]
@@ -67,7 +69,9 @@ def test_depth_count_mismatch_is_a_clean_error(tiny_scene, tmp_path, capsys):
                  "--set", "global_mesh.dense=rgbd", "--set", "global_mesh.progress=false"])
     err = capsys.readouterr().err
     assert code == 2 and "0003.png" in err.strip().splitlines()[-1]
-    assert not (ws / "global").exists() and not (ws / "sfm" / "cameras.txt").exists()
+    # the poses stage before it is kept; the failed stage wrote nothing
+    assert (ws / "global" / "cameras.json").is_file()
+    assert not (ws / "global" / "mesh.ply").exists() and not (ws / "global" / "report.json").exists()
 
 
 @pytest.mark.parametrize("value", ["-1", "1e-6"])
@@ -89,9 +93,9 @@ def test_sfm_recovers_poses_on_synthetic_scene(tmp_path):
     generate(opts, out)
     ws = tmp_path / "ws"
     assert main(["run", str(ws), "--input", str(out), "--until", "global_mesh",
-                 "--set", "global_mesh.force_sfm=true", "--set", "global_mesh.matching=sequential",
+                 "--set", "poses.force_sfm=true", "--set", "poses.matching=sequential",
                  "--set", "global_mesh.progress=false"]) == 0
-    rep = json.loads((ws / "global" / "report.json").read_text())
+    rep = json.loads((ws / "global" / "poses.json").read_text())
     assert rep["pose_source"] == "sfm" and rep["units"] == "metres"
     est = cameras_from_json(ws / "global" / "cameras.json")
     truth = cameras_from_json(out / "cameras.json")
