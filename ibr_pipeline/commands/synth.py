@@ -41,6 +41,21 @@ def add_synth_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, default=None,
                         help="worker processes (default: min(2, CPU count))")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    real = parser.add_argument_group(
+        "realistic capture", "simulate a phone's photographs (docs/SYNTHETIC.md, 'Realistic captures')")
+    real.add_argument("--realistic", action="store_true",
+                      help="write only images/ (sRGB, noisy, vignetted, auto-exposed), no depth, "
+                           "cameras or reflectors: those go to gt/ for scoring")
+    real.add_argument("--noise-scale", type=float, default=1.0, metavar="S",
+                      help="sensor-noise standard deviation relative to the phone preset "
+                           "(0 = noiseless; default 1)")
+    real.add_argument("--vignetting", type=float, default=None, metavar="A",
+                      help="light lost in the image corners, 0-0.9 (default 0.25)")
+    real.add_argument("--exposure-range", type=float, default=None, metavar="R",
+                      help="auto-exposure gain varies smoothly within 1 +- R, 0-0.9 (default 0.3)")
+    real.add_argument("--distortion", type=float, default=None, metavar="K1",
+                      help="radial lens distortion k1, negative = barrel (default 0: the pipeline "
+                           "does not undistort images yet)")
 
 
 def _options(args: argparse.Namespace):
@@ -50,7 +65,9 @@ def _options(args: argparse.Namespace):
                         views=args.views, test_views=args.test_views, flythrough=args.flythrough,
                         depth_scale=args.depth_scale, gt_layers=not args.no_gt_layers,
                         raytree_pairs=args.raytree_pairs, jobs=args.jobs,
-                        progress=not args.no_progress)
+                        progress=not args.no_progress, realistic=args.realistic,
+                        noise_scale=args.noise_scale, vignetting=args.vignetting,
+                        exposure_range=args.exposure_range, distortion=args.distortion)
 
 
 def synth_main(args: argparse.Namespace) -> int:

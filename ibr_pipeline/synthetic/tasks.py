@@ -74,20 +74,25 @@ def _run(args) -> dict:
 
 def run_jobs(opts, out: Path, jobs: list[tuple], sensor_wh: tuple[int, int]) -> list[dict]:
     """Run every (kind, index, name, camera) job; returns their stats in job order."""
+    args = [(k, i, n, c, str(out), opts.seed, sensor_wh, opts.gt_layers) for k, i, n, c in jobs]
+    return run_tasks(opts, _run, args, f"synth {opts.name}")
+
+
+def run_tasks(opts, task, args: list[tuple], desc: str) -> list[dict]:
+    """`task(a)` for every a of `args` (a module-level function: it crosses to spawned workers,
+    each initialised with the scene's world by `_init`), in order, with a progress bar."""
     from tqdm import tqdm
 
-    args = [(k, i, n, c, str(out), opts.seed, sensor_wh, opts.gt_layers) for k, i, n, c in jobs]
-    bar = dict(total=len(args), desc=f"synth {opts.name}", unit="view", disable=not opts.progress,
-               leave=False)
+    bar = dict(total=len(args), desc=desc, unit="view", disable=not opts.progress, leave=False)
     n_jobs = min(opts.jobs, len(args))
     if n_jobs <= 1 or len(args) < 12:  # small scenes: a pool's start-up costs more than it saves
         _init(opts.name, opts.seed)
-        return [_run(a) for a in tqdm(args, **bar)]
+        return [task(a) for a in tqdm(args, **bar)]
     import multiprocessing as mp
 
     # spawn, not fork: open3d/embree thread pools do not survive a fork reliably
     ctx = mp.get_context("spawn")
     with ctx.Pool(n_jobs, initializer=_init, initargs=(opts.name, opts.seed)) as pool:
-        return list(tqdm(pool.imap(_run, args, chunksize=1), **bar))
+        return list(tqdm(pool.imap(task, args, chunksize=1), **bar))
 
 
