@@ -33,6 +33,7 @@ SCENE_REFLECTORS = "global/reflectors.json"       # the input's reflectors in th
 # --- global_mesh ---------------------------------------------------------------------------------
 GLOBAL_MESH = "global/mesh.ply"                   # G (Xu §4.1)
 GLOBAL_REPORT = "global/report.json"
+MVS_DEPTH_DIR = "global/mvs"                      # each view's filtered MVS depth (RGB-only captures)
 
 # --- per view: view_file(view, NAME) -------------------------------------------------------------
 DEPTH_INIT = "depth_init.npy"    # view_depth: G's depth before refinement
@@ -81,6 +82,11 @@ def view_dir(view: str) -> str:
 
 def view_file(view: str, filename: str) -> str:
     return f"{view_dir(view)}/{filename}"
+
+
+def mvs_depth_file(view: str) -> str:
+    """The MVS z-depth map (.npy, float32, working resolution, 0 = none) G was fused from."""
+    return f"{MVS_DEPTH_DIR}/{view_key(view)}.npy"
 
 
 def render_file(render_set: str, filename: str) -> str:

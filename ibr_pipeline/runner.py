@@ -134,7 +134,7 @@ def write_record(path: Path, record: dict) -> None:
 
 
 def stale_reasons(stage: Stage, record: dict | None, config: dict, inputs: dict[str, str | None],
-                  ws: Workspace, hashes: HashCache) -> list[str]:
+                  ws: Workspace, hashes: HashCache, declared: Sequence[str] = ()) -> list[str]:
     """Why a stage (or one view of it) must run; empty when it is up to date."""
     if record is None:
         return ["never run"]
@@ -160,6 +160,9 @@ def stale_reasons(stage: Stage, record: dict | None, config: dict, inputs: dict[
             reasons.append(f"output missing: {key}")
         elif sha != meta["sha256"]:
             reasons.append(f"output changed on disk: {key}")
+    new = [k for k in declared if k not in record.get("outputs", {})]
+    if new:  # the stage now writes a file its last run did not
+        reasons.append(f"output never written: {new[0]}" + (f" (+{len(new) - 1} more)" if len(new) > 1 else ""))
     return reasons
 
 
@@ -231,7 +234,8 @@ def plan_stage(stage: Stage, ctx: StageContext, hashes: HashCache, force: bool,
                                             + (f" (+{len(missing) - 1} more)" if len(missing) > 1 else "")])
     if not stage.per_view:
         record = read_record(ws.state_file(stage.name))
-        reasons = ["forced"] if force else stale_reasons(stage, record, config, shared, ws, hashes)
+        reasons = ["forced"] if force else stale_reasons(stage, record, config, shared, ws, hashes,
+                                                         expand(stage.outputs, ctx))
         return StagePlan(stage, "will run" if reasons else "up to date", reasons, input_hashes=shared)
     views = stage_views(stage, ctx)
     plan = StagePlan(stage, "up to date", views_total=len(views))

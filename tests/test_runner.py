@@ -89,6 +89,28 @@ def test_code_version_change_reruns(toy_ws, monkeypatch):
     assert "code version changed: 1 → 2" in plans["upper"].summary()
 
 
+def test_a_newly_declared_output_reruns_the_stage(toy_ws, monkeypatch):
+    """A whole-scene stage that now writes one more file (its outputs depend on the data) is not
+    up to date just because its recorded outputs are unchanged."""
+    import dataclasses
+    _run(toy_ws)
+
+    def listing_twice(ctx):
+        toy_stages.listing_run(ctx)
+        ctx.ws.write_json("toy/extra.json", [])
+    grown = (dataclasses.replace(STAGES[0], run=listing_twice,
+                                 outputs=("toy/views.json", "toy/extra.json")), STAGES[1])
+    monkeypatch.setattr(toy_stages, "STAGES", grown)
+    ws = Workspace(toy_ws)
+    plans = {p.stage.name: p for p in status(grown, ws, load_configs(grown, ws))}
+    assert plans["listing"].state == "will run"
+    assert "output never written: toy/extra.json" in plans["listing"].summary()
+    res = {r.name: r for r in run(grown, ws, load_configs(grown, ws), grown, progress=False)}
+    assert res["listing"].result == "ran" and (toy_ws / "toy" / "extra.json").is_file()
+    plans = {p.stage.name: p for p in status(grown, ws, load_configs(grown, ws))}
+    assert plans["listing"].state == "up to date"
+
+
 def test_output_deleted_or_tampered_reruns(toy_ws):
     _run(toy_ws)
     (toy_ws / "views" / "v01" / "out.txt").unlink()

@@ -23,7 +23,19 @@ from ..runner import Stage, StageContext
 
 log = logging.getLogger("ibr_pipeline.global_mesh")
 
-OUTPUTS = (L.GLOBAL_MESH, L.GLOBAL_REPORT)
+def dense_mode(ctx) -> str:
+    """global_mesh.dense resolved: 'rgbd' when every training view has a depth frame ('auto')."""
+    if ctx.config.dense != "auto":
+        return ctx.config.dense
+    cams = L.registered_cameras(ctx.ws)
+    return "rgbd" if all(ctx.scene.view(n).depth for n in cams) else "mvs"
+
+
+def outputs(ctx: StageContext) -> list[str]:
+    out = [L.GLOBAL_MESH, L.GLOBAL_REPORT]
+    if ctx.ws.path(L.REGISTERED_CAMERAS).is_file() and dense_mode(ctx) == "mvs":
+        out += [L.mvs_depth_file(n) for n in L.registered_cameras(ctx.ws)]
+    return out
 
 
 @dataclass(frozen=True)
@@ -183,9 +195,7 @@ def run(ctx: StageContext) -> None:
     cams = L.registered_cameras(ws)
     frame = L.poses_report(ws)
     depth_views = {v.name: v.depth for v in scene.views if v.depth and v.name in cams}
-    dense = cfg.dense
-    if dense == "auto":
-        dense = "rgbd" if len(depth_views) == len(cams) else "mvs"
+    dense = dense_mode(ctx)
     if dense == "rgbd" and len(depth_views) != len(cams):
         missing = next(n for n in cams if n not in depth_views)
         raise InputError(f"{ws.path(scene.view(missing).image)}: no depth frame for this image "
@@ -235,6 +245,14 @@ def run(ctx: StageContext) -> None:
                           "mesh_vertices": len(mesh.vertices), "mesh_faces": len(mesh.faces)},
                   mirror_world="masked by reflectors.json" if reflectors else
                   "NOT masked: no reflectors.json, mirror-world geometry may be in the mesh")
+    if depths is not None:  # view_depth completes G's holes with them
+        for n, (d, _) in depths.items():
+            with ws.atomic_write(L.mvs_depth_file(n)) as f:
+                np.save(f, d.astype(np.float32))
+        for n in cams:
+            if n not in depths:  # a view MVS skipped: no depth
+                with ws.atomic_write(L.mvs_depth_file(n)) as f:
+                    np.save(f, np.zeros((8, 8), np.float32))
     write_ply(ws.path(L.GLOBAL_MESH), mesh, comment="ibr_pipeline global_mesh")
     report["timings"]["total_s"] = time.perf_counter() - t_start
     ws.write_json(L.GLOBAL_REPORT, report)
@@ -249,4 +267,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="the global mesh of the training views (RGB-D TSDF "
               "fusion or MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="4", run=run, inputs=inputs, outputs=OUTPUTS)
+              config=GlobalMeshConfig, version="4", run=run, inputs=inputs, outputs=outputs)

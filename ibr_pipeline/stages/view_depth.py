@@ -1,6 +1,7 @@
 """Stage `view_depth` (Xu et al. §4.2.1-4.2.2), per view: render the global mesh G into the view,
 detect depth edges (Eq. 1), build the 4 cm refinement mask, refine inside it (masked multi-view
-stereo, then Eq. 2 geodesic interpolation over a colour-edge cost map), write depth/normals/edges.
+stereo, then Eq. 2 geodesic interpolation over a colour-edge cost map), complete what G leaves
+empty (the view's MVS depth, then edge-aware interpolation), write depth/normals/edges.
 
 Optional user strokes (Xu §4.2.2 "we also allow users to specify edges"): `input/strokes/<image
 stem>.png`, an 8-bit grey image of the view's size, white (> 127) = an occlusion edge the
@@ -79,6 +80,9 @@ class ViewDepthConfig(StageConfig):
                               "plateaus (ours); 0 = off", min=0, max=64)
     rounded_min_rel: float = param(1.0, "rounded-step test threshold, fraction of Eq. 1's lambda",
                                    min=0.1, max=10.0)
+    complete: bool = param(True, "fill the pixels G leaves empty (ours, for RGB-only captures): "
+                           "the view's own MVS depth, then edge-aware membrane interpolation of "
+                           "the rest over Eq. 2's colour-edge cost map (geometry/depth_complete.py)")
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
                              "(<image stem>.png, white = edge)")
     device: str = param("cpu", "torch device for the plane sweep", choices=("cpu", "cuda"),
@@ -162,6 +166,8 @@ def view_inputs(ctx: StageContext, view: str) -> list[str]:
     keys = [scene.view(view).image] + [scene.view(s).image for s in _sources(ctx, view)]
     if ctx.ws.exists(_strokes_key(ctx, view)):
         keys.append(_strokes_key(ctx, view))
+    if ctx.config.complete and ctx.ws.exists(L.mvs_depth_file(view)):
+        keys.append(L.mvs_depth_file(view))
     return keys
 
 
@@ -317,6 +323,20 @@ def _run(ctx: StageContext, view: str) -> None:
     depth2, filled, _ = dr.refine(depth1, cam, image, region, barrier, cfg.cost_base, cfg.cost_edge,
                                   cfg.neighbours, boundary_radius=px * cfg.edge_boundary_radius)
     timings["interp_ms"] = 1000 * (time.perf_counter() - t)
+    # 5. completion where G is empty (ours): the view's MVS depth, then edge-aware interpolation
+    t = time.perf_counter()
+    completed = {"mvs": 0, "interpolated": 0}
+    empty_before = float((depth2 <= 0).mean())
+    if cfg.complete and (depth2 <= 0).any():
+        from ..geometry.depth_complete import complete_depth
+        mvs_d = None
+        if ws.exists(L.mvs_depth_file(view)):
+            mvs_d = np.load(ws.path(L.mvs_depth_file(view)))
+            mvs_d = mvs_d if mvs_d.any() else None
+        depth2, which = complete_depth(depth2, cam, image, mvs_d, cfg.cost_edge,
+                                       px * cfg.edge_boundary_radius, strokes)
+        completed = {k: int(v.sum()) for k, v in which.items()}
+    timings["complete_ms"] = 1000 * (time.perf_counter() - t)
     if not np.all(np.isfinite(depth2)):
         raise RuntimeError("refined depth has non-finite values")
     final = dr.detect(depth2, cam, cfg.lambda_rel, with_mask=False)  # edges.png: Eq. 1 on the result
@@ -338,12 +358,13 @@ def _run(ctx: StageContext, view: str) -> None:
         "mask_pixels": int(mask.sum()), "rounded_step_pixels": int(rounded.sum()), "mvs_accepted": int(accepted.sum()),
         "interpolated": int(filled.sum()),
         "refined_fraction": float((accepted.sum() + filled.sum()) / max(int(mask.sum()), 1)),
-        "valid_fraction": float((depth2 > 0).mean()), "strokes": strokes is not None,
+        "valid_fraction": float((depth2 > 0).mean()), "empty_in_g": empty_before,
+        "completed": completed, "strokes": strokes is not None,
         "mvs": mvs_stats, "timings_ms": {k: round(v, 1) for k, v in timings.items()},
         "ms": round(ms, 1), "cpu_ms": round(1000 * (time.process_time() - c0), 1)})
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="6", run=run, per_view=True,
+              config=ViewDepthConfig, version="7", run=run, per_view=True,
               inputs=(L.REGISTERED_CAMERAS, L.GLOBAL_MESH), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)
