@@ -34,6 +34,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               "DSRNet supersampling: held-out and sequence PSNR/SSIM, flicker, train/infer speed"),
     Benchmark("raytree", "benchmarks.raytree",
               "ray-tree warper: PSNR vs the naive warp on specular cases, ms/frame"),
+    Benchmark("real", "benchmarks.real",
+              "a real capture, LLFF protocol: held-out PSNR/SSIM/FLIP vs naive warp, nearest image, "
+              "published figures; holes, coverage, seconds per stage"),
     Benchmark("synth", "benchmarks.synth",
               "synthetic scene generation: median seconds per scene"),
 )

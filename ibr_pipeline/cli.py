@@ -181,6 +181,11 @@ def _cmd_status(args) -> int:
                           for p in plans], indent=1))
     else:
         print(status_table(plans))
+        from . import layout as L
+        from .report import scene_frame_line
+        frame = L.poses_report(ws)
+        if frame.get("units"):
+            print(scene_frame_line(frame))
     return 0
 
 

@@ -215,6 +215,21 @@ def _bench(rep: Report) -> None:
     rep.add("Benchmark (ibr bench)", blocks)
 
 
+def scene_frame_line(frame: dict) -> str:
+    """One sentence on the scene frame of global/poses.json (report and `ibr status`)."""
+    units = frame.get("units")
+    how = (frame.get("alignment") or {}).get("method", "?")
+    if units == "normalised":
+        what = (f"normalised: no metric scale in the capture, so the input was scaled by "
+                f"{frame['scale']:.4g} to a median scene depth of {frame.get('median_scene_depth', 0):.3g} "
+                "(lengths in the settings are relative to a room seen from that distance)")
+    else:
+        what = f"metres (x{frame['scale']:.4g} from the input; {how})"
+    c = frame.get("counts", {})
+    held = f", {c['heldout']} held out" if c.get("heldout") else ""
+    return f"Scene frame: {what}. Poses from {frame.get('pose_source', '?')}{held}."
+
+
 def build(ws_root: Path) -> Report:
     ws_root = Path(ws_root)
     if not (ws_root / "ibr.toml").is_file():
@@ -224,8 +239,22 @@ def build(ws_root: Path) -> Report:
     views = scene.get("views", [])
     rep.add("Scene", [("p", f"Workspace `{ws_root}`; {len(views)} input views, "
                             f"{len(scene.get('reflectors', []))} user-given reflector(s).")])
+    frame = _read_json(ws_root / L.POSES_REPORT)
+    if isinstance(frame, dict) and "units" in frame:
+        src = ws_root / L.POSES_REPORT
+        rep.add("Scene frame (poses)", [
+            ("p", scene_frame_line(frame)),
+            ("table", ["quantity", "value"],
+             [["scale (scene units per input unit)", rep.fact(frame["scale"], src, "scale")]]
+             + ([["median scene depth", rep.fact(frame["median_scene_depth"], src,
+                                                "median_scene_depth")]]
+                if frame.get("median_scene_depth") is not None else [])
+             + [[f"{k} images", rep.fact(v, src, f"counts.{k}")] for k, v in
+                frame.get("counts", {}).items()])])
     _timings(rep)
-    _json_table(rep, ws_root / "global" / "report.json", "Global mesh and poses (global_mesh)")
+    _json_table(rep, ws_root / L.POSES_REPORT, "Poses (poses)",
+                skip=("config", "transform", "depth_ranges", "gt_to_scene.R"))
+    _json_table(rep, ws_root / "global" / "report.json", "Global mesh (global_mesh)")
     _per_view(rep, L.DEPTH_REPORT, "Per-view depth refinement (view_depth)")
     _per_view(rep, L.MESH_REPORT, "Per-view meshes (view_mesh)")
     _per_view(rep, L.LAYERS, "Reflection layers (reflection)")

@@ -78,7 +78,7 @@ def run(ctx: StageContext) -> None:
              len(scene.views), posed, scene.source, sum(v.depth is not None for v in scene.views),
              len(scene.reflectors))
     if posed == 0:
-        log.info("ingest: no camera poses given: the global_mesh stage will run SfM")
+        log.info("ingest: no camera poses given: the poses stage will run SfM")
 
 
 STAGE = Stage(name="ingest", help="read the input folder, check every file, write scene.json",
