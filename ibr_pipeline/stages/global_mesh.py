@@ -1,8 +1,10 @@
 """Stage `global_mesh` (Xu et al. §4.1): the global mesh G of the training views, in the scene
 frame of the `poses` stage (stages/poses.py).
 
-Dense geometry: RGB-D TSDF fusion (geometry/fusion.py), or our plane-sweep MVS (geometry/mvs.py)
-filtered by geometric consistency and fused the same way. Reflectors (reflectors.json) are replaced
+Dense geometry: RGB-D TSDF fusion (geometry/fusion.py), or multi-view stereo of the RGB images
+fused the same way: PatchMatch with slanted planes and geometric consistency (geometry/patchmatch.py,
+COLMAP / ACMM style; the default) or the fronto-parallel plane sweep (geometry/mvs.py) filtered by
+geometric consistency. Each view's MVS depth is kept for view_depth's completion. Reflectors (reflectors.json) are replaced
 by their plane in every depth map before fusion, so the mirror world never enters G. The module
 only loads, calls and saves; docs/GLOBAL_MESH.md explains the choices.
 """
@@ -19,6 +21,7 @@ from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
 from ..geometry.fusion import FusionOptions
+from ..geometry.patchmatch import PatchMatchOptions
 from ..runner import Stage, StageContext
 
 log = logging.getLogger("ibr_pipeline.global_mesh")
@@ -44,18 +47,22 @@ class GlobalMeshConfig(StageConfig):
                        "auto = rgbd when every view has depth", choices=("auto", "rgbd", "mvs"))
     fusion: FusionOptions = param(FusionOptions(), "TSDF fusion of the depth frames")
     reflector_fill: bool = param(True, "replace reflector pixels by the reflector plane (else drop them)")
+    mvs: str = param("patchmatch", "MVS method: patchmatch (slanted planes, propagation, "
+                     "geometric consistency; geometry/patchmatch.py) or sweep (fronto-parallel "
+                     "plane sweep, geometry/mvs.py)", choices=("patchmatch", "sweep"))
+    patchmatch: PatchMatchOptions = param(PatchMatchOptions(), "PatchMatch MVS (mvs = patchmatch)")
     mvs_scale: float = param(0.5, "MVS working resolution relative to the images", min=0.05, max=1.0)
     mvs_sources: int = param(4, "MVS source views per reference view", min=1, max=16)
-    mvs_depths: int = param(96, "MVS plane hypotheses (uniform in inverse depth) of the full sweep",
+    mvs_depths: int = param(96, "plane sweep: hypotheses (uniform in inverse depth) of the full sweep",
                             min=4, max=512)
-    mvs_coarse_levels: int = param(1, "MVS pyramid: the full sweep runs this many octaves below the "
+    mvs_coarse_levels: int = param(1, "plane sweep pyramid: the full sweep runs this many octaves below the "
                                    "working size, finer levels search a band around it", min=0, max=4)
-    mvs_refine_depths: int = param(16, "MVS hypotheses per pixel at each finer pyramid level", min=2, max=128)
-    mvs_window: int = param(9, "MVS NCC window (odd)", min=3, max=21)
-    mvs_max_cost: float = param(0.5, "MVS: reject pixels whose 1 - NCC exceeds this", min=0.0, max=2.0)
-    mvs_min_consistent: int = param(1, "MVS: source depth maps that must agree (geometric filter)", min=0, max=16)
-    mvs_consistency_tol: float = param(0.02, "MVS geometric filter: relative depth tolerance", min=1e-4, max=0.5)
-    mvs_consistency_px: float = param(1.0, "MVS geometric filter: round-trip reprojection tolerance (px)",
+    mvs_refine_depths: int = param(16, "plane sweep: hypotheses per pixel at each finer pyramid level", min=2, max=128)
+    mvs_window: int = param(9, "plane sweep: NCC window (odd)", min=3, max=21)
+    mvs_max_cost: float = param(0.5, "plane sweep: reject pixels whose 1 - NCC exceeds this", min=0.0, max=2.0)
+    mvs_min_consistent: int = param(1, "plane sweep: source depth maps that must agree (geometric filter)", min=0, max=16)
+    mvs_consistency_tol: float = param(0.02, "plane sweep geometric filter: relative depth tolerance", min=1e-4, max=0.5)
+    mvs_consistency_px: float = param(1.0, "plane sweep geometric filter: round-trip reprojection tolerance (px)",
                                       min=0.1, max=20.0)
     mvs_depth_min: float = param(0.3, "MVS depth range of a view with too few scene points (scene "
                                  "units, global/poses.json)", min=1e-3, max=1e4)
@@ -153,31 +160,47 @@ def _mvs_depths(ctx, cams, ranges, report) -> dict:
             out[n] = (d, wcams[n])
         return out
 
+    sources, view_range = {}, {}
+    for n in cams:
+        # the scene points' depth percentiles in this view, widened (poses stage)
+        lo, hi = view_range[n] = tuple(ranges.get(n, (cfg.mvs_depth_min, cfg.mvs_depth_max)))
+        src = mvs.select_sources(wcams[n], wcams, k=cfg.mvs_sources, scene_depth=float(np.sqrt(lo * hi)))
+        if src:
+            sources[n] = src
+        else:
+            log.warning("global_mesh: view %s has no MVS source view; skipped", n)
+    show = cfg.progress and ctx.progress
     import torch
     prev_threads = torch.get_num_threads()
     torch.set_num_threads(cfg.threads)  # threads beyond the free cores only spin-wait
-    raw, t0, c0 = {}, time.perf_counter(), time.process_time()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
-        for n in tqdm(cams, desc="global_mesh: MVS", unit="view",
-                      disable=not (cfg.progress and ctx.progress), leave=False):
-            # the scene points' depth percentiles in this view, widened (poses stage)
-            lo, hi = ranges.get(n, (cfg.mvs_depth_min, cfg.mvs_depth_max))
-            src = mvs.select_sources(wcams[n], wcams, k=cfg.mvs_sources, scene_depth=float(np.sqrt(lo * hi)))
-            if not src:
-                log.warning("global_mesh: view %s has no MVS source view; skipped", n)
-                continue
-            r = mvs.plane_sweep(imgs[n], wcams[n], [imgs[s] for s in src], [wcams[s] for s in src], lo, hi,
-                                num_depths=cfg.mvs_depths, window=cfg.mvs_window, device=cfg.device,
-                                max_cost=cfg.mvs_max_cost, coarse_levels=cfg.mvs_coarse_levels,
-                                refine_depths=cfg.mvs_refine_depths,
-                                refine_levels=0 if cfg.mvs_coarse_levels > 0 else 1)
-            raw[n] = (r.depth, src)
-        report["timings"]["mvs_s_per_view"] = (time.perf_counter() - t0) / max(len(raw), 1)
-        report["timings"]["mvs_cpu_s_per_view"] = (time.process_time() - c0) / max(len(raw), 1)
-        t0, c0 = time.perf_counter(), time.process_time()
-        out = filtered(raw)
-        report["timings"]["mvs_filter_s_per_view"] = (time.perf_counter() - t0) / max(len(raw), 1)
-        report["timings"]["mvs_filter_cpu_s_per_view"] = (time.process_time() - c0) / max(len(raw), 1)
+        if cfg.mvs == "patchmatch":  # photometric, geometric passes and the final filter
+            from ..geometry.patchmatch import patchmatch_views
+            res = patchmatch_views(imgs, wcams, sources, view_range, cfg.patchmatch, device=cfg.device,
+                                   progress=show)
+            out = {n: (r.depth.astype(np.float32), wcams[n]) for n, r in res.items()}
+            report["timings"]["mvs_s_per_view"] = (time.perf_counter() - t0) / max(len(out), 1)
+            report["timings"]["mvs_cpu_s_per_view"] = (time.process_time() - c0) / max(len(out), 1)
+        else:
+            raw = {}
+            for n in tqdm(sources, desc="global_mesh: MVS", unit="view", disable=not show, leave=False):
+                src, (lo, hi) = sources[n], view_range[n]
+                r = mvs.plane_sweep(imgs[n], wcams[n], [imgs[s] for s in src], [wcams[s] for s in src],
+                                    lo, hi, num_depths=cfg.mvs_depths, window=cfg.mvs_window,
+                                    device=cfg.device, max_cost=cfg.mvs_max_cost,
+                                    coarse_levels=cfg.mvs_coarse_levels,
+                                    refine_depths=cfg.mvs_refine_depths,
+                                    refine_levels=0 if cfg.mvs_coarse_levels > 0 else 1)
+                raw[n] = (r.depth, src)
+            report["timings"]["mvs_s_per_view"] = (time.perf_counter() - t0) / max(len(raw), 1)
+            report["timings"]["mvs_cpu_s_per_view"] = (time.process_time() - c0) / max(len(raw), 1)
+            t0, c0 = time.perf_counter(), time.process_time()
+            out = filtered(raw)
+            report["timings"]["mvs_filter_s_per_view"] = (time.perf_counter() - t0) / max(len(raw), 1)
+            report["timings"]["mvs_filter_cpu_s_per_view"] = (time.process_time() - c0) / max(len(raw), 1)
+    except ValueError as e:
+        raise InputError(f"{ws.input_root}: MVS: {e}") from None
     finally:
         torch.set_num_threads(prev_threads)
     report["mvs_valid_fraction"] = float(np.mean([np.mean(d > 0) for d, _ in out.values()])) if out else 0.0
@@ -267,4 +290,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="the global mesh of the training views (RGB-D TSDF "
               "fusion or MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="4", run=run, inputs=inputs, outputs=outputs)
+              config=GlobalMeshConfig, version="5", run=run, inputs=inputs, outputs=outputs)
