@@ -63,6 +63,13 @@ class RenderSettings(Options):
     hysteresis: bool = param(True, "§5.1.2: keep the previous frame's views along a camera path")
     max_views: int = param(0, "blend at most this many of the selected views, smallest d_k first "
                            "(ours, a speed knob); 0 = every view §5.1.2 selects", min=0, max=72)
+    visibility: str = param("auto", "fuzzy = §5.1.3's fuzzy depth test across the views' meshes; "
+                            "per_view = each view's mesh z-buffered on its own, then blended by "
+                            "Eq. 15 (ours: robust to meshes that disagree, as multi-view stereo of "
+                            "photographs does); auto = fuzzy when G was fused from depth frames, "
+                            "else per_view (docs/RENDERING.md)", choices=("auto", "fuzzy", "per_view"))
+    per_view_max: int = param(4, "per_view: blend at most this many views, smallest d_k first",
+                              min=1, max=72)
 
 
 @dataclass
@@ -146,6 +153,8 @@ class IBRModel:
             raise InputError(f"{ws.path(L.REGISTERED_CAMERAS)}: no registered view to render from")
         for name in tqdm(names, desc="loading views", unit="view", disable=not progress, leave=False):
             views.append(load_view(ws, name, cams[name], scene.view(name).image, layers, s))
+        if s.visibility == "auto":
+            s = replace(s, visibility=auto_visibility(ws))
         return cls(views, s)
 
     # --- view selection (§5.1.1–5.1.2) -----------------------------------------------------------
@@ -281,6 +290,24 @@ class IBRModel:
         front = gl.read_float(t["fbo_front"], 0, box, 1)[..., 0]
         return acc, bacc, front
 
+    def _render_layer_per_view(self, camera: Camera, layer: int, items: list[tuple[int, float]],
+                               box: tuple[int, int, int, int] | None = None):
+        """`_render_layer` with each view's mesh z-buffered alone (render_single_view) and the
+        views blended by w_k x texture alpha: no view's surface hides another's. Same returns."""
+        x, y, bw, bh = box or (0, 0, *camera.size)
+        acc = np.zeros((bh, bw, 4), np.float32)
+        bacc = np.zeros((bh, bw), np.float32)
+        front = np.full((bh, bw), 1e30, np.float32)
+        for k, wk in items:
+            r = self.render_single_view(camera, k, layer)
+            cov = r["covered"][y:y + bh, x:x + bw]
+            wgt = np.where(cov, wk * r["alpha"][y:y + bh, x:x + bw], 0.0).astype(np.float32)
+            acc[..., :3] += wgt[..., None] * r["rgb"][y:y + bh, x:x + bw]
+            acc[..., 3] += wgt
+            bacc += wgt * r["beta"][y:y + bh, x:x + bw]
+            front = np.where(cov, np.minimum(front, r["z"][y:y + bh, x:x + bw]), front)
+        return acc, (bacc if layer == 0 else None), front
+
     # --- rendering ------------------------------------------------------------------------------
     def render(self, camera: Camera, exclude=(), previous: "Frame | None" = None,
                layers: bool = True) -> Frame:
@@ -288,10 +315,13 @@ class IBRModel:
         t0 = time.perf_counter()
         s = self.settings
         sel, d = self.select(camera, exclude, previous)
+        if s.visibility == "per_view":
+            sel = sel[:s.per_view_max]
         w = blend.view_weights(d[sel], s.delta)
         t1 = time.perf_counter()
         items0 = [(k, float(wk)) for k, wk in zip(sel, w)]
-        acc, bacc, front = self._render_layer(camera, 0, items0)
+        layer_fn = self._render_layer_per_view if s.visibility == "per_view" else self._render_layer
+        acc, bacc, front = layer_fn(camera, 0, items0)
         covered = acc[..., 3] > 0
         inv = 1.0 / np.where(covered, acc[..., 3], 1.0)
         acc[..., 3] = bacc
@@ -301,7 +331,7 @@ class IBRModel:
         box = _bbox(refl) if items1 else None
         i1 = cov1 = None
         if box is not None:  # reflection layer only where the blended beta is > 0
-            acc1, _, _ = self._render_layer(camera, 1, items1, box)
+            acc1, _, _ = layer_fn(camera, 1, items1, box)
             x, y, bw, bh = box
             cov1 = np.zeros(covered.shape, bool)
             cov1[y:y + bh, x:x + bw] = acc1[..., 3] > 0
@@ -371,6 +401,18 @@ class IBRModel:
 
     def with_settings(self, **changes) -> "IBRModel":
         return IBRModel(self.views, replace(self.settings, **changes))
+
+
+def auto_visibility(ws) -> str:
+    """`visibility = auto`: the fuzzy depth test where G was fused from depth frames (geometry
+    accurate to its tolerance), per-view z-buffering where it came from multi-view stereo."""
+    import json
+    p = ws.path(L.GLOBAL_REPORT)
+    try:
+        dense = json.loads(p.read_text()).get("dense") if p.is_file() else None
+    except (OSError, json.JSONDecodeError):
+        raise InputError(f"{p}: malformed JSON") from None
+    return "fuzzy" if dense in (None, "rgbd") else "per_view"
 
 
 def _bbox(mask: np.ndarray):
