@@ -92,13 +92,14 @@ def main(args: argparse.Namespace) -> int:
         sampler = _supersampler(ws, args.self_ensemble)
     out = args.out or ws.path(f"{L.RENDERS}/cli_{what}")
     model = IBRModel.load(ws, layers=not args.single_layer, settings=cfg.renderer)
+    from ..nn.data import low_res_camera
     frames, rows, prev = [], [], None
     try:
         for i, ((name, cam), ex) in enumerate(tqdm(list(zip(cams, excl)), desc="render",
                                                    unit="frame", disable=args.no_progress)):
             if sampler is not None:
                 scale = int(getattr(sampler, "scale", 2))
-                lr = cam.resized(cam.width // scale, cam.height // scale)
+                lr = low_res_camera(cam, scale)   # odd sizes lose the last row / column
                 f = model.render(lr, exclude=() if ex is None else (ex,),
                                  previous=prev if sequential else None)
                 if not sequential:  # unrelated views: no previous frame (M_d = 0)

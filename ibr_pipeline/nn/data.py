@@ -50,11 +50,20 @@ class Sample:
     target: np.ndarray  # (H, W, 3) full resolution, H = scale*h
 
 
+def supersampled_size(width: int, height: int, scale: int) -> tuple[int, int]:
+    """(W, H) of what supersampling reconstructs: the image less the < scale columns and rows at
+    its right and bottom that a 1/scale render cannot cover exactly (a phone's 498x373 -> 498x372)."""
+    if scale < 1:
+        raise ValueError(f"scale must be >= 1, got {scale}")
+    return width - width % scale, height - height % scale
+
+
 def low_res_camera(camera: Camera, scale: int) -> Camera:
-    if camera.width % scale or camera.height % scale:
-        raise ValueError(f"image size {camera.width}x{camera.height} is not divisible by the "
-                         f"supersampling scale {scale}")
-    return camera.resized(camera.width // scale, camera.height // scale)
+    """The camera of the 1/scale render: the image cropped to `supersampled_size` (a crop at the
+    right and bottom keeps K), then resized exactly."""
+    w, h = supersampled_size(camera.width, camera.height, scale)
+    crop = Camera(camera.K, camera.cam_from_world, w, h)
+    return crop.resized(w // scale, h // scale)
 
 
 def split_views(names: Sequence[str], val_fraction: float = 0.1) -> tuple[list[str], list[str]]:

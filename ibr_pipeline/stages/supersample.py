@@ -79,7 +79,7 @@ def run(ctx: StageContext) -> None:
 
     from ..io.images import read_image
     from ..nn.data import (capture_pairs, make_sample, nearest_views, render_low_res,
-                           sequence_pairs, split_views)
+                           sequence_pairs, split_views, supersampled_size)
     from ..nn.model import count_parameters, cpu_threads, preset, resolve_device, save_model
     from ..nn.train import evaluate, plot_losses, train
     from ..render.low_res import IBRRenderer, StandInRenderer
@@ -100,10 +100,6 @@ def run(ctx: StageContext) -> None:
         resolve_device(tcfg.device)
     except ValueError as e:
         raise ConfigError("supersample.train.device", str(e)) from None
-    for n in names:
-        if cams[n].width % cfg.scale or cams[n].height % cfg.scale:
-            raise ConfigError("supersample.scale", f"view {n} is {cams[n].width}x{cams[n].height}, "
-                              f"not divisible by {cfg.scale}")
     if cfg.exclude_nearest and cfg.exclude_nearest >= len(names) - 1:
         raise InputError(f"supersample.exclude_nearest = {cfg.exclude_nearest} would leave out "
                          f"every other view ({len(names)} registered views)")
@@ -150,7 +146,8 @@ def run(ctx: StageContext) -> None:
             raise InputError(f"{ws.path(ctx.scene.view(n).image)}: image is "
                              f"{img.shape[1]}x{img.shape[0]}, its camera "
                              f"{cams[n].width}x{cams[n].height}")
-        targets[n] = img
+        w, h = supersampled_size(cams[n].width, cams[n].height, cfg.scale)
+        targets[n] = img[:h, :w]   # odd sizes: the last row / column has no low-res pixel
     train_pairs = sequence_pairs(train_names, train_names)
     train_samples = [make_sample(c, p, frames, targets[c]) for c, p in train_pairs]
     far_samples = ([make_sample(c, p, far_frames, targets[c]) for c, p in train_pairs]
