@@ -79,7 +79,8 @@ def _range_map(value, shape: tuple[int, int], what: str) -> np.ndarray:
     return arr
 
 
-def _pick_device(device):
+def torch_device(device):
+    """torch.device(device); ValueError when CUDA is asked for and absent (shared with patchmatch)."""
     import torch
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
@@ -385,7 +386,7 @@ def plane_sweep(ref_image: np.ndarray, ref_cam: Camera, src_images: Sequence[np.
     fill_min, fill_max = float(np.median(dmin[usable])), float(np.median(dmax[usable]))
     dmin = np.where(ranged, dmin, fill_min)
     dmax = np.where(ranged, dmax, fill_max)
-    opt = dict(window=window, dev=_pick_device(device), tile=tile, k_best=k_best, batch=batch,
+    opt = dict(window=window, dev=torch_device(device), tile=tile, k_best=k_best, batch=batch,
                progress=progress, refine_levels=refine_levels, refine_depths=refine_depths,
                num_depths=num_depths)
     with torch.no_grad():
@@ -415,7 +416,7 @@ def geometric_consistency(ref_cam: Camera, ref_depth: np.ndarray, src_cams: Sequ
     if len(src_cams) != len(src_depths):
         raise ValueError(f"{len(src_cams)} source cameras but {len(src_depths)} depth maps")
     H, W = ref_depth.shape
-    dev = _pick_device(device)
+    dev = torch_device(device)
     ref_cam = _at_size(ref_cam, W, H)
     f64 = torch.float64
     u, v = torch.meshgrid(torch.arange(W, dtype=f64, device=dev), torch.arange(H, dtype=f64, device=dev),

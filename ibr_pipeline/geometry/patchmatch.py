@@ -42,7 +42,7 @@ import numpy as np
 from ..config import Options, param
 from ..errors import ConfigError
 from ..scene import Camera
-from .mvs import geometric_consistency
+from .mvs import geometric_consistency, torch_device
 
 if TYPE_CHECKING:  # torch is imported where it is used (fast CLI start)
     import torch
@@ -532,14 +532,6 @@ def _depth_map(d, shape, what: str) -> np.ndarray:
     return arr
 
 
-def _device(device):
-    import torch
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device 'cuda' requested but torch sees no CUDA device")
-    return dev
-
-
 def _checked(opts: PatchMatchOptions) -> PatchMatchOptions:
     if not isinstance(opts, PatchMatchOptions):
         raise ValueError(f"opts must be PatchMatchOptions, got {type(opts).__name__}")
@@ -581,7 +573,7 @@ def patchmatch(ref_image: np.ndarray, ref_cam: Camera, src_images: Sequence[np.n
             for i, (s, c, d) in enumerate(zip(src_images, src_cams, src_depths))]
     lo, hi = _range(depth_min, depth_max, "patchmatch")
     init = None if init_depth is None else (_depth_map(init_depth, ref.shape, "init_depth"), None)
-    raw = _solve(ref, ref_cam, srcs, lo, hi, opts, _device(device), seed, init=init)
+    raw = _solve(ref, ref_cam, srcs, lo, hi, opts, torch_device(device), seed, init=init)
     return _thresholded(raw, opts)
 
 
@@ -608,7 +600,7 @@ def patchmatch_views(images: dict[str, np.ndarray], cams: dict[str, Camera],
         if not srcs or bad:
             raise ValueError(f"view {name!r}: sources must be other views in images and cams, "
                              f"got {list(srcs)}")
-    dev = _device(device)
+    dev = torch_device(device)
     used = {*sources, *(s for v in sources.values() for s in v)}
     gray = {n: _gray(images[n], f"images[{n!r}]") for n in used}
     rng = {n: _range(*ranges[n], f"ranges[{n!r}]") for n in sources}
