@@ -66,8 +66,10 @@ class RenderSettings(Options):
     visibility: str = param("auto", "fuzzy = §5.1.3's fuzzy depth test across the views' meshes; "
                             "per_view = each view's mesh z-buffered on its own, then blended by "
                             "Eq. 15 (ours: robust to meshes that disagree, as multi-view stereo of "
-                            "photographs does); auto = fuzzy when G was fused from depth frames, "
-                            "else per_view (docs/RENDERING.md)", choices=("auto", "fuzzy", "per_view"))
+                            "photographs does; without §5.1.4's edge decay, whose edges are the "
+                            "noise of such depth); auto = fuzzy when G was fused from depth "
+                            "frames, else per_view (docs/RENDERING.md)",
+                            choices=("auto", "fuzzy", "per_view"))
     per_view_max: int = param(4, "per_view: blend at most this many views, smallest d_k first",
                               min=1, max=72)
 
@@ -151,10 +153,10 @@ class IBRModel:
         names = [n for n in scene.names if n in cams]
         if not names:
             raise InputError(f"{ws.path(L.REGISTERED_CAMERAS)}: no registered view to render from")
-        for name in tqdm(names, desc="loading views", unit="view", disable=not progress, leave=False):
-            views.append(load_view(ws, name, cams[name], scene.view(name).image, layers, s))
         if s.visibility == "auto":
             s = replace(s, visibility=auto_visibility(ws))
+        for name in tqdm(names, desc="loading views", unit="view", disable=not progress, leave=False):
+            views.append(load_view(ws, name, cams[name], scene.view(name).image, layers, s))
         return cls(views, s)
 
     # --- view selection (§5.1.1–5.1.2) -----------------------------------------------------------
@@ -455,7 +457,8 @@ def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
     edges = _edges(ws.path(f"{vdir}/{L.EDGES}"))
     if edges.shape != (H, W):
         raise InputError(f"{ws.path(f'{vdir}/{L.EDGES}')}: size {edges.shape[::-1]} is not {W}x{H}")
-    alpha0 = blend.texture_alpha(edges, s.feather_px, s.edge_decay_px)
+    decay = 0.0 if s.visibility == "per_view" else s.edge_decay_px  # see RenderSettings.visibility
+    alpha0 = blend.texture_alpha(edges, s.feather_px, decay)
     info = {}
     lj = ws.path(f"{vdir}/{L.LAYERS}")
     if layers and lj.is_file():
@@ -474,7 +477,9 @@ def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
             raise InputError(f"{bpath}: beta must be finite with shape {(H, W)}, got {beta.shape}")
         beta = np.clip(beta, 0.0, 1.0)
         l0 = LayerData(m0.vertices, m0.faces, img(f"{vdir}/{L.I0}"), alpha0, beta)
-        alpha1 = blend.texture_alpha(edges | mask_boundary(beta > 0), s.feather_px, s.edge_decay_px)
+        # the reflection layer always decays at the border of its beta > 0 region
+        e1 = mask_boundary(beta > 0) | (edges if decay else np.zeros_like(edges))
+        alpha1 = blend.texture_alpha(e1, s.feather_px, s.edge_decay_px)
         l1 = LayerData(m1.vertices, m1.faces, img(f"{vdir}/{L.I1}"), alpha1)
         return ViewData(name, camera, (l0, l1))
     m = read_ply(ws.path(f"{vdir}/{L.MESH}"))
