@@ -26,15 +26,23 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, input_text
 
 IMAGE_ENCODING = "linear"
 DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNG units per metre (mm)
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 
 
+def _numbers(value: Any, what: str) -> np.ndarray:
+    """`value` as a float64 array, or InputError naming `what` (strings, nulls, ragged lists)."""
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: must be numbers, got {str(value)[:80]}") from None
+
+
 def _as_matrix(value: Any, shape: tuple[int, int], what: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
+    arr = _numbers(value, what)
     if arr.shape != shape:
         raise InputError(f"{what}: expected a {shape[0]}x{shape[1]} matrix, got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
@@ -61,6 +69,9 @@ class Camera:
             raise InputError("camera cam_from_world: rotation part is not a proper rotation")
         if not np.allclose(T[3], [0, 0, 0, 1]):
             raise InputError("camera cam_from_world: last row must be [0, 0, 0, 1]")
+        size = _numbers([self.width, self.height], "camera width/height")
+        if size.shape != (2,) or not np.all(np.isfinite(size)) or np.any(size != np.round(size)):
+            raise InputError(f"camera width/height must be whole numbers, got {self.width}x{self.height}")
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise InputError(f"camera size must be positive, got {self.width}x{self.height}")
         object.__setattr__(self, "K", K)
@@ -164,6 +175,8 @@ class Camera:
 
     @staticmethod
     def from_dict(d: dict, where: str = "camera") -> "Camera":
+        if not isinstance(d, dict):
+            raise InputError(f"{where}: expected an object with K, cam_from_world, width, height")
         try:
             return Camera(d["K"], d["cam_from_world"], d["width"], d["height"])
         except KeyError as e:
@@ -222,7 +235,7 @@ class Reflector:
         if not isinstance(d, dict) or "plane" not in d:
             raise InputError(f"{where}: each reflector needs a 'plane' [a, b, c, d]")
         name = str(d.get("name", where))
-        plane = np.asarray(d["plane"], dtype=np.float64)
+        plane = _numbers(d["plane"], f"{where}: 'plane'")
         if plane.shape != (4,) or not np.all(np.isfinite(plane)):
             raise InputError(f"{where}: 'plane' must be 4 finite numbers, got {d['plane']!r}")
         n = np.linalg.norm(plane[:3])
@@ -234,7 +247,7 @@ class Reflector:
             raise InputError(f"{where}: 'beta' must be a number in (0, 1], got {beta!r}")
         poly = d.get("polygon")
         if poly is not None:
-            arr = np.asarray(poly, dtype=np.float64)
+            arr = _numbers(poly, f"{where}: 'polygon'")
             if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < 3 or not np.all(np.isfinite(arr)):
                 raise InputError(f"{where}: 'polygon' must be >= 3 finite [x, y, z] points")
             poly = tuple(tuple(float(c) for c in p) for p in arr)
@@ -316,8 +329,8 @@ def cameras_to_json(cameras: dict[str, Camera]) -> str:
 
 def cameras_from_json(path: Path) -> dict[str, Camera]:
     try:
-        d = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        d = json.loads(input_text(path))
+    except json.JSONDecodeError as e:
         raise InputError(f"{path}: cannot read camera JSON ({e})") from None
     if not isinstance(d, dict) or not isinstance(d.get("cameras"), dict):
         raise InputError(f"{path}: expected an object with a 'cameras' mapping")
@@ -326,8 +339,8 @@ def cameras_from_json(path: Path) -> dict[str, Camera]:
 
 def read_reflectors(path: Path) -> tuple[Reflector, ...]:
     try:
-        d = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        d = json.loads(input_text(path))
+    except json.JSONDecodeError as e:
         raise InputError(f"{path}: cannot read reflectors ({e})") from None
     items = d.get("reflectors") if isinstance(d, dict) else d
     if not isinstance(items, list):

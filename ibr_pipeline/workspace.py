@@ -29,10 +29,11 @@ from pathlib import Path
 from typing import Iterator
 
 from . import layout
-from .errors import InputError
+from .errors import InputError, WorkspaceError, confined, write_error
 from .layout import view_key
 
 CONFIG_FILE = "ibr.toml"
+INPUT_KEYS = frozenset({"path"})  # the [input] table; stage tables are checked by their configs
 INPUT_PREFIX = layout.INPUT
 _TMP_MARK = ".ibrtmp-"
 _UMASK = os.umask(0)  # read the process umask once (os.umask can only be read by setting it)
@@ -45,6 +46,8 @@ def read_toml(path: Path) -> dict:
             return tomllib.load(f)
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"{path}: malformed TOML ({e})") from None
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not UTF-8 text (byte {e.start}); TOML files must be UTF-8") from None
     except OSError as e:
         raise InputError(f"{path}: cannot read ({e.strerror})") from None
 
@@ -72,6 +75,10 @@ class Workspace:
         raw = self.config().get("input", {})
         if not isinstance(raw, dict):
             raise InputError(f"{self.config_path}: [input] must be a table with a 'path' key")
+        unknown = sorted(set(raw) - INPUT_KEYS)
+        if unknown:
+            raise InputError(f"{self.config_path}: unknown key input.{unknown[0]} "
+                             f"([input] takes: {', '.join(sorted(INPUT_KEYS))})")
         p = raw.get("path")
         if p is None:
             return self.root
@@ -82,9 +89,12 @@ class Workspace:
 
     # --- keys -> paths -------------------------------------------------------------------------
     def path(self, key: str) -> Path:
+        """The file of a key. Keys come from stage code but also from files a user can edit
+        (scene.json, reflectors.json masks, config fields such as `strokes_dir`), so a key that
+        is absolute or climbs out with `..` is refused rather than read."""
         if key.startswith(INPUT_PREFIX):
-            return self.input_root / key[len(INPUT_PREFIX):]
-        return self.root / key
+            return confined(self.input_root, key[len(INPUT_PREFIX):], key)
+        return confined(self.root, key, key) if key else self.root
 
     def key(self, path: Path) -> str:
         """Inverse of `path` for files inside the workspace or the input folder."""
@@ -138,6 +148,29 @@ class Workspace:
     def write_json(self, key: str, obj) -> None:
         self.write_text(key, json.dumps(obj, indent=1))
 
+    @contextlib.contextmanager
+    def lock(self, wait: bool = False) -> Iterator[None]:
+        """Hold the workspace for one run: a second `ibr run` on it is refused (or, with `wait`,
+        waits) and is told which process holds it. An flock on the workspace folder itself: the
+        kernel releases it when the holder dies, kill -9 included, and no lock file is written, so
+        a refused or failed run leaves the workspace exactly as it was."""
+        import fcntl
+        fd = os.open(self.root, os.O_RDONLY)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _lock_holder(self.root)
+                if not wait:
+                    raise WorkspaceError(f"{self.root}: in use by {holder}; wait for it to end, "
+                                         "or rerun with --wait") from None
+                import logging
+                logging.getLogger("ibr_pipeline").info("waiting for %s to release %s", holder, self.root)
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(fd)  # releases the flock
+
     def clean_temporaries(self) -> int:
         """Remove temporary files a killed process left behind; returns how many."""
         n = 0
@@ -148,6 +181,22 @@ class Workspace:
         return n
 
 
+def _lock_holder(folder: Path) -> str:
+    """'pid N (`command`)' of the process holding an flock on `folder`, from /proc/locks (Linux);
+    'another process' where that cannot be read."""
+    try:
+        st = os.stat(folder)
+        dev = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+        for line in Path("/proc/locks").read_text().splitlines():
+            f = line.split()
+            if len(f) > 5 and f[1] == "FLOCK" and f[5] == dev and f[4] != str(os.getpid()):
+                cmd = Path(f"/proc/{f[4]}/cmdline").read_bytes().replace(b"\0", b" ").decode().strip()
+                return f"pid {f[4]} (`{cmd}`)" if cmd else f"pid {f[4]}"
+    except (OSError, ValueError, IndexError):
+        pass
+    return "another process"
+
+
 @contextlib.contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
     """Yield a temporary path in target's folder; rename it to `target` if the block succeeds.
@@ -156,17 +205,26 @@ def atomic_path(target: Path) -> Iterator[Path]:
     target's suffix so format detection by extension still works.
     """
     target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}{_TMP_MARK}", suffix=target.suffix,
-                               dir=target.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; outputs get ordinary permissions
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}{_TMP_MARK}", suffix=target.suffix,
+                                   dir=target.parent)
+        os.close(fd)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; outputs get ordinary permissions
+    except OSError as e:
+        err = write_error(e, target)
+        if err is None:
+            raise
+        raise err from None
     try:
         yield Path(tmp)
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as e:
+        err = write_error(e, target, Path(tmp))  # before the unlink: it frees the space that ran out
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if err is not None:
+            raise err from None
         raise
 
 

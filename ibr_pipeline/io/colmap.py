@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, input_text
 from ..scene import Camera
 
 _PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
@@ -44,7 +44,7 @@ def check_text_model(path: Path) -> None:
                     raise InputError(f"{file}: line {lineno}: value {tok!r} is not a finite number")
 
     def data_lines(file: Path):
-        return [(n, l) for n, l in enumerate(file.read_text().splitlines(), 1)
+        return [(n, l) for n, l in enumerate(input_text(file).splitlines(), 1)
                 if l.strip() and not l.startswith("#")]
 
     if (path / "cameras.txt").is_file():

@@ -16,6 +16,11 @@ from ..scene import DEPTH_PNG_SCALE
 from ..workspace import atomic_path
 
 
+def _too_large(path: Path, e: Exception) -> InputError:
+    return InputError(f"{path}: image too large to decode ({e}); a corrupt header or a "
+                      "decompression bomb: replace or downscale the file")
+
+
 def _open(path: Path) -> Image.Image:
     try:
         im = Image.open(path)
@@ -23,6 +28,8 @@ def _open(path: Path) -> Image.Image:
         return im
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
+    except Image.DecompressionBombError as e:  # not an OSError: PIL's guard against huge headers
+        raise _too_large(path, e) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
         raise InputError(f"{path}: cannot decode image ({e})") from None
 
@@ -34,6 +41,8 @@ def image_size(path: Path) -> tuple[int, int]:
             return im.size
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
+    except Image.DecompressionBombError as e:
+        raise _too_large(path, e) from None
     except (UnidentifiedImageError, OSError) as e:
         raise InputError(f"{path}: cannot read image header ({e})") from None
 

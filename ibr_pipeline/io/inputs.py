@@ -44,6 +44,10 @@ def read_input(root: Path) -> Scene:
             raise InputError(f"{sparse}: model refers to images not in {img_dir}: {unknown[:5]}")
     elif (root / "cameras.json").is_file():
         cameras, source = cameras_from_json(root / "cameras.json"), "cameras.json"
+        unknown = sorted(set(cameras) - set(names))
+        if unknown:  # names like "../x.png" or "/abs.png" end here too: only listed images are views
+            raise InputError(f"{root / 'cameras.json'}: cameras for images not in {img_dir}: "
+                             f"{unknown[:5]}" + (f" (+{len(unknown) - 5} more)" if len(unknown) > 5 else ""))
 
     depth_dir = root / "depth"
     views = []
@@ -52,6 +56,13 @@ def read_input(root: Path) -> Scene:
         depth = depth_dir / f"{stem}.png"
         views.append(View(name=name, image=f"input/{rel}{name}", camera=cameras.get(name),
                           depth=f"input/depth/{stem}.png" if depth.is_file() else None))
+    with_depth = [v for v in views if v.depth is not None]
+    if with_depth and len(with_depth) < len(views):
+        # a partial set would silently switch global_mesh from RGB-D fusion to MVS for all views
+        missing = [f"depth/{Path(v.name).with_suffix('.png').as_posix()}" for v in views if v.depth is None]
+        raise InputError(f"{depth_dir}: {len(with_depth)} of {len(views)} images have a depth frame; "
+                         f"missing {', '.join(missing[:3])}" + (f" (+{len(missing) - 3} more)" if len(missing) > 3 else "")
+                         + " (add them, or move depth/ away to build geometry from the images alone)")
     reflectors = read_reflectors(root / "reflectors.json") if (root / "reflectors.json").is_file() else ()
     return Scene(tuple(views), reflectors, source)
 

@@ -115,7 +115,12 @@ class VGGFeatures(nn.Module):
                 layers += [nn.Conv2d(c, v, 3, padding=1), nn.ReLU(inplace=False)]
                 c = v
         self.features = nn.Sequential(*layers)
-        state = torch.load(Path(weights_path), map_location="cpu", weights_only=True)
+        from ..errors import InputError
+        from .model import torch_load_reason
+        try:
+            state = torch.load(Path(weights_path), map_location="cpu", weights_only=True)
+        except Exception as e:  # noqa: BLE001  (a user's file: one line naming it)
+            raise InputError(f"{weights_path}: cannot read VGG-16 weights ({torch_load_reason(e)})") from None
         if isinstance(state, dict) and "state_dict" in state:
             state = state["state_dict"]
         state = {k[len("features."):] if k.startswith("features.") else k: v

@@ -284,6 +284,13 @@ def save_model(path: Path, model: DSRNet, extra: dict | None = None) -> None:
         torch.save(state, tmp)
 
 
+def torch_load_reason(e: Exception) -> str:
+    """The first sentence of why torch.load(weights_only=True) refused a file. Its messages run to
+    several paragraphs and advise weights_only=False, which would run the file's code: never here."""
+    first = (str(e).strip().splitlines() or [""])[0].split(". ")[0].rstrip(".")
+    return f"{type(e).__name__}: {first}" if first else type(e).__name__
+
+
 def load_model(path: Path, device="cpu") -> DSRNet:
     from ..errors import InputError
     try:
@@ -291,7 +298,8 @@ def load_model(path: Path, device="cpu") -> DSRNet:
     except FileNotFoundError:
         raise InputError(f"{path}: no trained DSRNet (run `ibr supersample` first)") from None
     except Exception as e:  # noqa: BLE001  (corrupt/foreign file: one line for the user)
-        raise InputError(f"{path}: cannot read DSRNet weights ({type(e).__name__}: {e})") from None
+        raise InputError(f"{path}: cannot read DSRNet weights ({torch_load_reason(e)}); retrain "
+                         "with `ibr supersample --force`") from None
     if not isinstance(state, dict) or state.get("format") != MODEL_FORMAT:
         raise InputError(f"{path}: not a DSRNet model file ({MODEL_FORMAT})")
     model = DSRNet(DSRNetConfig.from_dict(state["config"]))

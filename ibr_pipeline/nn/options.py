@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..config import Options, param
-from ..errors import ConfigError
+from ..errors import ConfigError, escapes
 
 PERCEPTUAL_WEIGHT = 0.1  # §5.2.2: "Weight w (default 0.1)"
 
@@ -27,8 +27,9 @@ class TrainOptions(Options):
     l1_weight: float = param(0.0, "optional L1 image term (Table 4 mentions L1, §5.2.2's equation "
                              "does not); 0 = the paper's loss", min=0.0, max=100.0)
     warp_weight: float = param(1.0, "weight of L_warp (§5.2.2 gives none)", min=0.0, max=100.0)
-    vgg_weights: str = param("", "a VGG-16 features state dict (.pt/.pth) for the perceptual "
-                             "loss; none can be downloaded, so empty = a fixed filter bank")
+    vgg_weights: str = param("", "a VGG-16 features state dict (.pt/.pth, a path inside the "
+                             "workspace) for the perceptual loss; none can be downloaded, so "
+                             "empty = a fixed filter bank")
     seed: int = param(0, "seed of the weights and the crops (training is deterministic)",
                       min=0, max=2**31 - 1)
     checkpoint_every: int = param(100, "steps between checkpoints and validations", min=1,
@@ -54,3 +55,6 @@ class TrainOptions(Options):
         if self.vgg_weights and not self.vgg_weights.endswith((".pt", ".pth")):
             raise ConfigError(prefix + "vgg_weights", f"expected a .pt/.pth file, got "
                               f"{self.vgg_weights!r}")
+        if self.vgg_weights and escapes(self.vgg_weights):
+            raise ConfigError(prefix + "vgg_weights", f"{self.vgg_weights!r} "
+                              f"{escapes(self.vgg_weights)}: give a path inside the workspace")

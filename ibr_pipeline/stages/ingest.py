@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from .. import layout as L
 from ..config import StageConfig, param
-from ..errors import InputError
+from ..errors import InputError, confined
 from ..runner import Stage, StageContext
 from ..io.inputs import input_files, read_input
 from ..scene import Scene
@@ -63,6 +63,8 @@ def run(ctx: StageContext) -> None:
             if view_name not in scene.names:
                 raise InputError(f"{ws.input_root / 'reflectors.json'}: reflector {r.name!r} has a "
                                  f"mask for unknown view {view_name!r}")
+            where = f"{ws.input_root / 'reflectors.json'}: reflector {r.name!r} mask of {view_name!r}"
+            confined(ws.input_root, rel, where)  # a shared reflectors.json must not read outside
             key = f"input/{rel}"
             mw, mh = image_size(ws.path(key))
             cam = scene.view(view_name)

@@ -94,9 +94,12 @@ class ViewDepthConfig(StageConfig):
                            affects_output=False)
 
     def check(self, prefix: str) -> None:
-        from ..errors import ConfigError
+        from ..errors import ConfigError, escapes
         if self.window % 2 == 0:
             raise ConfigError(prefix + "window", f"must be odd, got {self.window}")
+        if escapes(self.strokes_dir):
+            raise ConfigError(prefix + "strokes_dir", f"{self.strokes_dir!r} {escapes(self.strokes_dir)}: "
+                              "it names a sub-folder of the input folder")
 
 
 def _strokes_key(ctx: StageContext, view: str) -> str:

@@ -69,9 +69,9 @@ def test_depth_count_mismatch_is_a_clean_error(tiny_scene, tmp_path, capsys):
                  "--set", "global_mesh.dense=rgbd", "--set", "global_mesh.progress=false"])
     err = capsys.readouterr().err
     assert code == 2 and "0003.png" in err.strip().splitlines()[-1]
-    # the poses stage before it is kept; the failed stage wrote nothing
-    assert (ws / "global" / "cameras.json").is_file()
-    assert not (ws / "global" / "mesh.ply").exists() and not (ws / "global" / "report.json").exists()
+    assert "7 of 8 images have a depth frame" in err.strip().splitlines()[-1]
+    # refused at ingest, before any stage wrote: a partial set must not switch the dense method
+    assert not (ws / "scene.json").exists() and not (ws / "global").exists()
 
 
 @pytest.mark.parametrize("value", ["-1", "1e-6"])
