@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from .config import describe_fields, nest
-from .errors import InputError
+from .errors import InputError, write_error
 
 log = logging.getLogger("ibr_pipeline")
 
@@ -53,6 +53,11 @@ def _add_exec_args(p: argparse.ArgumentParser) -> None:
                         "(workers need the workspace at the same path)")
     p.add_argument("--dask-local", type=int, default=0, metavar="N",
                    help="start a local Dask cluster with N worker processes for per-view tasks")
+    p.add_argument("--dask-timeout", type=float, default=120.0, metavar="S",
+                   help="with a Dask cluster: stop with an error when no worker has been connected "
+                        "and no view has finished for S seconds (finished views are kept)")
+    p.add_argument("--wait", action="store_true",
+                   help="when another run holds the workspace, wait for it instead of stopping")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -144,13 +149,21 @@ def _init_workspace(ws_path: Path, input_path: Path, force: bool):
     return Workspace(ws_path)
 
 
-def _open_workspace(args):
+def _open_workspace(args, create: bool = True):
+    """The workspace of `args`; with --input and no ibr.toml yet it is created, unless `create` is
+    False (--dry-run): then a workspace that exists only in memory answers what would run."""
     from .workspace import Workspace
     ws_path: Path = args.workspace
     given = getattr(args, "input", None)
     if given is not None:
         if not (ws_path / "ibr.toml").is_file():
-            return _init_workspace(ws_path, given, force=False)
+            if create:
+                return _init_workspace(ws_path, given, force=False)
+            if not given.is_dir():
+                raise InputError(f"{given}: input folder does not exist")
+            ws = Workspace(ws_path, must_exist=False)
+            ws._config = {"input": {"path": str(given.resolve())}}
+            return ws
         ws = Workspace(ws_path)
         if ws.input_root.resolve() != given.resolve():
             raise InputError(f"{ws.config_path}: workspace already uses input {ws.input_root}, "
@@ -189,28 +202,34 @@ def _cmd_status(args) -> int:
     return 0
 
 
-def _cmd_run(args, only: str | None = None, overrides: dict | None = None) -> int:
+def _cmd_run(args, only: str | None = None, overrides: dict | None = None,
+             command: tuple[str, ...] = ()) -> int:
     from .executors import make_executor
     from .pipeline import load_configs, run, select_stages, status, status_table, timing_table
     stages = _stages()
-    if args.jobs < 1 or args.dask_local < 0:
-        raise InputError("--jobs must be >= 1 and --dask-local >= 0")
+    if args.jobs < 1 or args.dask_local < 0 or not args.dask_timeout > 0:
+        raise InputError("--jobs must be >= 1, --dask-local >= 0 and --dask-timeout > 0")
     selected = select_stages(stages, getattr(args, "from_stage", None),
                              getattr(args, "until_stage", None), only)
-    ws = _open_workspace(args)
-    configs = load_configs(stages, ws, overrides)
-    if args.dry_run:
+    if args.dry_run:  # reads only: no workspace, lock or record is created
+        ws = _open_workspace(args, create=False)
+        configs = load_configs(stages, ws, overrides)
         print(status_table(status(stages, ws, configs, args.force, selected)))
         return 0
-    with make_executor(args.jobs, args.dask_scheduler, args.dask_local) as executor:
+    ws = _open_workspace(args)
+    configs = load_configs(stages, ws, overrides)
+    with ws.lock(wait=args.wait), \
+            make_executor(args.jobs, args.dask_scheduler, args.dask_local,
+                          **({"dask_watchdog_s": args.dask_timeout} if args.dask_scheduler or args.dask_local else {})) as executor:  # TEMP until executors lands
         results = run(stages, ws, configs, selected, args.force, executor,
-                      progress=not args.no_progress)
+                      progress=not args.no_progress, command=command)
     log.info("\n%s", timing_table(results))
     return 1 if any(r.result in ("failed", "blocked") for r in results) else 0
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    command = tuple(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     _setup_logging(args.verbose, args.quiet)
     try:
@@ -222,14 +241,20 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "status":
             return _cmd_status(args)
         if args.command == "run":
-            return _cmd_run(args, overrides=_parse_overrides(args.overrides))
+            return _cmd_run(args, overrides=_parse_overrides(args.overrides), command=command)
         if getattr(args, "func", None) is not None:
             return args.func(args)
         cfg = {k[5:]: v for k, v in vars(args).items() if k.startswith("cfg__") and v is not None}
-        return _cmd_run(args, only=args.command, overrides={args.command: nest(cfg)})
+        return _cmd_run(args, only=args.command, overrides={args.command: nest(cfg)}, command=command)
     except InputError as e:
         print(f"ibr: error: {e}", file=sys.stderr)
         return e.exit_code
+    except OSError as e:  # the boundary for writes outside atomic_path (mkdir of a workspace...)
+        err = write_error(e, Path(e.filename or "."))
+        if err is None:
+            raise
+        print(f"ibr: error: {err}", file=sys.stderr)
+        return err.exit_code
     except KeyboardInterrupt:
         print("ibr: interrupted; finished work is kept, rerun to continue", file=sys.stderr)
         return 130

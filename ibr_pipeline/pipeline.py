@@ -138,6 +138,10 @@ def _run_views(stage: Stage, ctx: StageContext, plan: StagePlan, executor: Execu
                 rec = make_record(stage, ctx, "ok", plan.input_hashes[view], view,
                                   out["outputs"], out["seconds"])
                 res.views_run += 1
+            elif isinstance(exc, InputError):
+                # bad input or an unwritable workspace: the user must act, so stop here (exit 2);
+                # the views finished so far keep their records, this one is left as it was
+                raise exc
             else:
                 msg = error_line(exc)
                 _save_traceback(ws, stage.name, view, exc)
@@ -156,17 +160,24 @@ def _run_views(stage: Stage, ctx: StageContext, plan: StagePlan, executor: Execu
 
 
 def _save_traceback(ws: Workspace, stage: str, view: str | None, exc: BaseException) -> None:
+    """Keep the traceback of a stage fault under .ibr/logs/. Best effort: when the workspace itself
+    cannot be written, the fault's one-line message is what the user gets, not a second traceback
+    about saving the first."""
     path = ws.root / ".ibr" / "logs" / stage / f"{view_key(view) if view else 'stage'}.txt"
-    with atomic_path(path) as tmp:
-        tmp.write_text(format_traceback(exc))
+    try:
+        with atomic_path(path) as tmp:
+            tmp.write_text(format_traceback(exc))
+    except (OSError, InputError) as e:
+        log.warning("could not save the traceback to %s (%s)", path, e)
 
 
 def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
         selected: Sequence[Stage], force: bool = False, executor: Executor | None = None,
-        progress: bool = True) -> list[StageResult]:
+        progress: bool = True, command: Sequence[str] = ()) -> list[StageResult]:
     """Run the selected stages in order; returns one StageResult per selected stage.
 
-    Stops after a stage that failed or is blocked.
+    Stops after a stage that failed or is blocked. `command` (the CLI arguments) is recorded with
+    the resolved configs in .ibr/runs.jsonl.
     """
     executor = executor or LocalExecutor(1)
     removed = ws.clean_temporaries()
@@ -200,24 +211,35 @@ def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
                           "only what failed or is stale.", s.name, ws.root / ".ibr" / "logs" / s.name)
                 break
     finally:
-        hashes.save()
-        _log_run(ws, results)
+        try:
+            hashes.save()
+        except (OSError, InputError) as e:  # only a cache: the next run rehashes
+            log.warning("could not save the hash cache (%s)", e)
+        finally:
+            _log_run(ws, results, {s.name: configs[s.name] for s in selected}, command)
     return results
 
 
-def _log_run(ws: Workspace, results: Sequence[StageResult]) -> None:
-    """Append this run's per-stage results to WS/.ibr/runs.jsonl (read by `ibr report`)."""
+def _log_run(ws: Workspace, results: Sequence[StageResult], configs: dict[str, StageConfig],
+             command: Sequence[str]) -> None:
+    """Append this run's command, resolved configs (defaults < ibr.toml < --set, every field) and
+    per-stage results to WS/.ibr/runs.jsonl (read by `ibr report`): what a record's outputs were
+    made with stays findable. Best effort: a full disk must not hide the error that stopped the run."""
     if not results:
         return
     import json
-    entry = {"finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    entry = {"finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "command": list(command),
+             "config": {name: cfg.to_dict() for name, cfg in configs.items()},
              "stages": [{"stage": r.name, "result": r.result, "seconds": round(r.seconds, 3),
                          "views_run": r.views_run, "views_failed": r.views_failed,
                          "views_total": r.views_total} for r in results]}
     path = ws.root / ".ibr" / "runs.jsonl"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as f:
-        f.write(json.dumps(entry) + "\n")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a") as f:
+            f.write(json.dumps(entry) + "\n")
+    except OSError as e:
+        log.warning("could not append to %s (%s)", path, e)
 
 
 def timing_table(results: Sequence[StageResult]) -> str:
