@@ -1,4 +1,5 @@
-"""The `ibr` CLI: help, status explanations, the ingest stage, and one-line errors on bad input."""
+"""The `ibr` CLI: help, status explanations, the ingest stage, and one-line errors on bad arguments
+(bad input files and configs: tests/bad_input/)."""
 import re
 import subprocess
 import sys
@@ -131,51 +132,6 @@ def test_unknown_stage(workspace, capsys):
     with pytest.raises(SystemExit) as e:
         main(["meshify", str(workspace)])
     assert e.value.code == 2  # argparse: invalid choice
-
-
-def test_malformed_toml(workspace, capsys):
-    (workspace / "ibr.toml").write_text((workspace / "ibr.toml").read_text() + "\n[ingest\nmin_views = 3\n")
-    _fails_cleanly(["run", str(workspace)], workspace, capsys, "ibr.toml: malformed TOML")
-
-
-def test_unknown_table_and_bad_value_in_toml(workspace, capsys):
-    base = (workspace / "ibr.toml").read_text()
-    (workspace / "ibr.toml").write_text(base + "\n[ingestt]\nmin_views = 3\n")
-    _fails_cleanly(["status", str(workspace)], workspace, capsys, "unknown table [ingestt]")
-    (workspace / "ibr.toml").write_text(base + "\n[ingest]\nmin_views = -1\n")
-    _fails_cleanly(["run", str(workspace)], workspace, capsys, "ibr.toml", "ingest.min_views: must be >= 1")
-
-
-def test_invalid_flag_values(workspace, capsys):
-    _fails_cleanly(["ingest", str(workspace), "--min-views", "0"], workspace, capsys, "ingest.min_views")
-    _fails_cleanly(["ingest", str(workspace), "--check-pixels", "maybe"], workspace, capsys,
-                   "ingest.check_pixels: expected true/false")
-    _fails_cleanly(["run", str(workspace), "--set", "ingest.min_views"], workspace, capsys, "STAGE.FIELD=VALUE")
-    _fails_cleanly(["run", str(workspace), "--jobs", "0"], workspace, capsys, "--jobs")
-    _fails_cleanly(["run", str(workspace), "--set", "ingest.min_views=99"], workspace, capsys,
-                   "4 image(s) found, ingest.min_views is 99")
-
-
-def test_corrupt_image_names_the_file(workspace, scene_input, capsys):
-    p = scene_input / "images" / "1.png"
-    p.write_bytes(p.read_bytes()[:200])
-    _fails_cleanly(["run", str(workspace)], workspace, capsys, "1.png", "cannot decode image")
-
-
-def test_depth_of_wrong_shape_names_the_file(workspace, scene_input, capsys):
-    write_depth_png(scene_input / "depth" / "3.png", np.full((20, 20), 1.0))
-    _fails_cleanly(["run", str(workspace)], workspace, capsys, "depth/3.png", "aspect ratio")
-
-
-def test_nan_in_camera_model_names_the_file(workspace, scene_input, capsys):
-    images = scene_input / "sparse" / "0" / "images.txt"
-    lines = images.read_text().splitlines()
-    i = next(k for k, line in enumerate(lines) if line and not line.startswith("#"))
-    parts = lines[i].split()
-    parts[5] = "nan"
-    lines[i] = " ".join(parts)
-    images.write_text("\n".join(lines) + "\n")
-    _fails_cleanly(["run", str(workspace)], workspace, capsys, "images.txt: line", "'nan' is not a finite number")
 
 
 def test_workspace_input_mismatch(workspace, tmp_path, capsys):

@@ -58,6 +58,15 @@ def test_bad_set(capsys, ws, input_dir, setting, needle):
     refused(capsys, ["run", ws, "--set", setting], input_dir, ws, needle)
 
 
+@pytest.mark.parametrize("argv,needle", [
+    (["ingest", "{ws}", "--min-views", "0"], "ingest.min_views"),
+    (["ingest", "{ws}", "--check-pixels", "maybe"], "ingest.check_pixels: expected true/false"),
+    (["run", "{ws}", "--set", "ingest.min_views=99"], "4 image(s) found, ingest.min_views is 99"),
+])
+def test_bad_stage_flags_and_values_checked_in_the_stage(capsys, ws, input_dir, argv, needle):
+    refused(capsys, [a.format(ws=ws) for a in argv], input_dir, ws, needle)
+
+
 @pytest.mark.parametrize("flags,needle", [
     (["--jobs", "0"], "--jobs"), (["--dask-local", "-1"], "--dask-local"),
     (["--dask-timeout", "0"], "--dask-timeout"), (["--from", "nosuch"], "nosuch"),

@@ -121,7 +121,8 @@ def _colmap_ws(tmp_path, colmap_dir):
     return ws
 
 
-@pytest.mark.parametrize("kind", ["truncated_bin", "text_abc", "text_not_utf8", "unknown_image"])
+@pytest.mark.parametrize("kind", ["truncated_bin", "text_abc", "text_nan_pose", "text_not_utf8",
+                                  "unknown_image"])
 def test_broken_colmap(capsys, tmp_path, colmap_dir, kind):
     ws = _colmap_ws(tmp_path, colmap_dir)
     sparse = colmap_dir / "sparse" / "0"
@@ -147,6 +148,15 @@ def test_broken_colmap(capsys, tmp_path, colmap_dir, kind):
             lines[i] = " ".join(parts)
             p.write_text("\n".join(lines) + "\n")
             needle = "cameras.txt"
+        elif kind == "text_nan_pose":
+            p = sparse / "images.txt"
+            lines = p.read_text().splitlines()
+            i = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+            parts = lines[i].split()
+            parts[5] = "nan"
+            lines[i] = " ".join(parts)
+            p.write_text("\n".join(lines) + "\n")
+            needle = "images.txt: line"
         elif kind == "text_not_utf8":
             p.write_bytes(p.read_bytes() + b"\xff\xfe\n")
             needle = "cameras.txt"
