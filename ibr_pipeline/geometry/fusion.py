@@ -3,7 +3,8 @@ a mesh using the KinectFusion algorithm"), and the reflector handling that keeps
 
 * `tsdf_fuse`: open3d tensor `VoxelBlockGrid` (Curless & Levoy / KinectFusion TSDF averaging;
   `ScalableTSDFVolume` returns empty meshes in open3d 0.20, docs/DESIGN.md), marching cubes
-  (`extract_triangle_mesh`), then small-component cleanup.
+  (`extract_triangle_mesh`), then small-component cleanup; the mesh comes out in the canonical
+  vertex/face order of `io.mesh.canonical_order`, so identical frames give identical bytes.
 * Mirrors: a depth sensor (and MVS) sees the virtual "mirror world" behind a reflector.
   `reflector_mask` marks, per depth frame, the pixels inside a reflector's projected polygon whose
   measured surface is at or behind the reflector plane; `apply_reflectors` replaces them with the
@@ -23,7 +24,7 @@ import numpy as np
 
 from ..config import Options, param
 from ..errors import ConfigError
-from ..io.mesh import Mesh
+from ..io.mesh import Mesh, canonical_mesh, canonical_order
 from ..scene import Camera, Reflector
 
 log = logging.getLogger("ibr_pipeline.fusion")
@@ -270,9 +271,18 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
         raise ValueError("tsdf_fuse: no frame has valid depth to fuse"
                          + (f" ({skipped} empty after masking)" if skipped else ""))
     tm = vbg.extract_triangle_mesh(weight_threshold=options.weight_threshold).to_legacy()
-    mesh, removed = clean_mesh(np.asarray(tm.vertices), np.asarray(tm.triangles),
-                               np.asarray(tm.vertex_colors) if tm.has_vertex_colors() else None,
-                               options.min_component)
+    # The VoxelBlockGrid's blocks live in a hash map filled by parallel threads, and marching
+    # cubes emits vertices and triangles in that map's order, which depends on thread timing: the
+    # same frames give the same surface (the values are deterministic) in a different vertex and
+    # face order on every run, so global/mesh.ply's bytes changed and a forced rerun made every
+    # later stage stale. Put it in canonical order before anything depends on the order (the
+    # vertex-normal sums of clean_mesh included), and once more after the cleanup.
+    verts, tris = np.asarray(tm.vertices), np.asarray(tm.triangles)
+    cols = np.asarray(tm.vertex_colors) if tm.has_vertex_colors() else None
+    vo, canon, _ = canonical_order(verts, tris, cols)
+    mesh, _ = clean_mesh(verts[vo], canon, None if cols is None else cols[vo], options.min_component)
+    mesh = canonical_mesh(mesh)
+    removed = len(tris) - len(mesh.faces)
     stats.update(vertices=len(mesh.vertices), faces=len(mesh.faces), removed_faces=removed)
     return mesh, stats
 

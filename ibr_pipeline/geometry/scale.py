@@ -89,7 +89,11 @@ def triangulate_given(images: dict[str, np.ndarray], cams: dict[str, Camera],
 
     sift = cv2.SIFT_create(nfeatures=max_features)
     feats = {}
-    for n in {x for p in pairs for x in p}:
+    # the views in order of first appearance in `pairs`, not a set's order: a set of strings
+    # iterates in an order that changes with PYTHONHASHSEED, and the mean of the camera centres
+    # below (hence `unit`, the triangulated depths and the normalised scene frame) changed in the
+    # last bits from one process to the next
+    for n in dict.fromkeys(x for p in pairs for x in p):
         if n not in images or n not in cams:
             raise ValueError(f"pair names view {n!r}, which has no image or camera")
         kp, desc = sift.detectAndCompute(_gray8(images[n]), None)

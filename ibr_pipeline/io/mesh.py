@@ -60,6 +60,119 @@ class Mesh:
         return self.vertices[self.faces]
 
 
+# --- canonical order -------------------------------------------------------------------------------
+def canonical_order(vertices: np.ndarray, faces: np.ndarray, attributes: np.ndarray | None = None,
+                    face_attributes: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A vertex and face order that depends only on what the mesh is, not on how it was built.
+
+    Meshes from parallel algorithms (open3d's TSDF VoxelBlockGrid and its marching cubes, which
+    emit vertices in hash-map order that depends on thread timing) describe the same surface with
+    a different vertex and face order on every run; written as is, identical inputs give
+    different bytes. This order is a pure function of the geometry:
+
+    * vertices sorted lexicographically by position (x, then y, then z, compared as numbers), then
+      by the optional per-vertex `attributes` columns (e.g. colours), then by the raw bits of both
+      (so -0.0 and 0.0, equal as numbers, still sort the same way every time);
+      vertices identical in all of these are indistinguishable, and are merged into one (no order
+      between them could be canonical); faces that merging collapses to fewer than 3 distinct
+      vertices are dropped;
+    * every face rotated cyclically so that its smallest vertex index comes first (the winding,
+      hence the orientation, is kept);
+    * faces sorted lexicographically by their three indices, then by the optional per-face
+      `face_attributes` columns (e.g. materials); faces equal in all of these are identical rows
+      of the file, so their order does not matter.
+
+    Positions are compared exactly, not quantised: the values the parallel code computes are
+    deterministic, only their order is not, and rounding would only move the sort's ties to the
+    rounding boundaries. Idempotent: a mesh in canonical order maps to itself.
+
+    vertices (V, 3) finite floats (compared as float32, the precision the PLY files store);
+    faces (F, 3) integer indices into them; attributes (V,) or (V, k) and face_attributes (F,) or
+    (F, k) finite numbers, or None.
+    Returns (vertex_order (V',) int64: new vertex i is old vertex vertex_order[i]; faces (F', 3)
+    int32 in the new indices; face_order (F',) int64: new face j is old face face_order[j]).
+    Raises ValueError on bad shapes, non-finite positions or out-of-range indices."""
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"canonical_order: vertices must be (V, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"canonical_order: faces must be (F, 3), got {f.shape}")
+    if f.size and not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"canonical_order: faces must be integer indices, got {f.dtype}")
+    v32 = np.ascontiguousarray(v, dtype=np.float32)
+    if not np.all(np.isfinite(v32)):
+        raise ValueError("canonical_order: vertices must be finite")
+    n = len(v32)
+    f = f.astype(np.int64, copy=False)
+    if f.size and (f.min() < 0 or f.max() >= n):
+        raise ValueError(f"canonical_order: face index out of range for {n} vertices")
+    a = _columns(attributes, n, "attributes", "vertices")
+    fa = _columns(face_attributes, len(f), "face_attributes", "faces")
+    # the raw bits of position and attributes: a total order, and what "identical" means
+    ident = np.concatenate([v32.view(np.uint32).astype(np.uint64), a.view(np.uint64)], axis=1)
+    # np.lexsort sorts by its last key first: x, y, z, then (only needed where two positions are
+    # equal as numbers, which marching cubes hardly ever gives) the attributes and the raw bits
+    order = np.lexsort([v32[:, i] for i in (2, 1, 0)]) if n else np.zeros(0, np.int64)
+    if n > 1 and np.any(np.all(v32[order[1:]] == v32[order[:-1]], axis=1)):
+        keys = ([ident[:, j] for j in range(ident.shape[1] - 1, -1, -1)]
+                + [a[:, j] for j in range(a.shape[1] - 1, -1, -1)] + [v32[:, i] for i in (2, 1, 0)])
+        order = np.lexsort(keys)
+    ident = ident[order]   # identical vertices are adjacent after the sort: merge them
+    new_group = np.ones(n, bool)
+    if n > 1:
+        new_group[1:] = np.any(ident[1:] != ident[:-1], axis=1)
+    group = np.cumsum(new_group) - 1                   # new index of each sorted vertex
+    remap = np.empty(n, np.int64)
+    remap[order] = group
+    vertex_order = order[new_group].astype(np.int64)
+    nf = remap[f] if f.size else np.zeros((0, 3), np.int64)
+    keep = (nf[:, 0] != nf[:, 1]) & (nf[:, 1] != nf[:, 2]) & (nf[:, 0] != nf[:, 2])
+    face_idx = np.nonzero(keep)[0]
+    nf, fa = nf[keep], fa[keep]
+    r = np.argmin(nf, axis=1)                           # rotate: smallest index first, same winding
+    rows = np.arange(len(nf))
+    nf = np.stack([nf[rows, (r + k) % 3] for k in range(3)], axis=1) if len(nf) else nf
+    if fa.shape[1] == 0 and len(vertex_order) < 2**21:   # one int64 key: a single (faster) sort
+        forder = np.argsort((nf[:, 0] << 42) | (nf[:, 1] << 21) | nf[:, 2], kind="stable")
+    else:
+        fkeys = [fa[:, j] for j in range(fa.shape[1] - 1, -1, -1)] + [nf[:, 2], nf[:, 1], nf[:, 0]]
+        forder = np.lexsort(fkeys) if len(nf) else np.zeros(0, np.int64)
+    return vertex_order, nf[forder].astype(np.int32), face_idx[forder].astype(np.int64)
+
+
+def _columns(values, n: int, name: str, what: str) -> np.ndarray:
+    """(n, k) float64 view of optional per-vertex / per-face tie-break values."""
+    if values is None:
+        return np.zeros((n, 0))
+    a = np.asarray(values)
+    a = a.reshape(-1, 1) if a.ndim == 1 else a
+    if a.ndim != 2 or a.shape[0] != n:
+        raise ValueError(f"canonical_order: {name} must be ({what[0].upper()},) or "
+                         f"({what[0].upper()}, k) for {n} {what}, got {np.shape(values)}")
+    if not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+        raise ValueError(f"canonical_order: {name} must be numbers, got {a.dtype}")
+    a = a.astype(np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"canonical_order: {name} must be finite")
+    return a
+
+
+def canonical_mesh(mesh: Mesh) -> Mesh:
+    """`mesh` in `canonical_order`: colours, quality and normals break ties between vertices at
+    the same position, materials between faces with the same corners; normals, colours, quality and
+    materials follow their vertex or face."""
+    cols = [c for c in (mesh.colors, None if mesh.quality is None else mesh.quality[:, None],
+                        mesh.normals) if c is not None]
+    attrs = np.concatenate([np.asarray(c, np.float64) for c in cols], axis=1) if cols else None
+    vo, faces, fo = canonical_order(mesh.vertices, mesh.faces, attrs, mesh.material)
+    pick = lambda a, idx: None if a is None else a[idx]  # noqa: E731
+    return Mesh(mesh.vertices[vo], faces, normals=pick(mesh.normals, vo),
+                colors=pick(mesh.colors, vo), quality=pick(mesh.quality, vo),
+                material=pick(mesh.material, fo), extra=dict(mesh.extra))
+
+
 def write_ply(path: Path | str, mesh: Mesh, comment: str = "ibr_pipeline") -> None:
     """Write `mesh` as binary little-endian PLY, atomically."""
     vfields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]

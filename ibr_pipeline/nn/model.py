@@ -280,8 +280,11 @@ def save_model(path: Path, model: DSRNet, extra: dict | None = None) -> None:
     state = {"format": MODEL_FORMAT, "config": model.config.to_dict(),
              "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}}
     state.update(extra or {})
-    with atomic_path(Path(path)) as tmp:
-        torch.save(state, tmp)
+    # torch.save(obj, PATH) names the zip archive's records after the file (here the random
+    # temporary name of the atomic write), so identical weights gave different bytes on every run;
+    # given an open file it names them "archive/..." always.
+    with atomic_path(Path(path)) as tmp, open(tmp, "wb") as fh:
+        torch.save(state, fh)
 
 
 def torch_load_reason(e: Exception) -> str:

@@ -276,6 +276,9 @@ def run(ctx: StageContext) -> None:
             if n not in depths:  # a view MVS skipped: no depth
                 with ws.atomic_write(L.mvs_depth_file(n)) as f:
                     np.save(f, np.zeros((8, 8), np.float32))
+    # tsdf_fuse returns the mesh in io.mesh.canonical_order (open3d's marching cubes emits it in a
+    # thread-dependent order): identical inputs write identical bytes, so a forced rerun leaves
+    # every later stage up to date (tests/test_determinism.py)
     write_ply(ws.path(L.GLOBAL_MESH), mesh, comment="ibr_pipeline global_mesh")
     report["timings"]["total_s"] = time.perf_counter() - t_start
     ws.write_json(L.GLOBAL_REPORT, report)
@@ -290,4 +293,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="the global mesh of the training views (RGB-D TSDF "
               "fusion or MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="5", run=run, inputs=inputs, outputs=outputs)
+              config=GlobalMeshConfig, version="6", run=run, inputs=inputs, outputs=outputs)

@@ -317,4 +317,4 @@ def run(ctx: StageContext) -> None:
 
 STAGE = Stage(name="poses", help="camera poses (given or COLMAP SfM) in a metric or normalised "
               "scene frame, held-out split, path check (Xu §4.1)",
-              config=PosesConfig, version="1", run=run, inputs=inputs, outputs=OUTPUTS)
+              config=PosesConfig, version="2", run=run, inputs=inputs, outputs=OUTPUTS)

@@ -210,5 +210,5 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="supersample", help="train DSRNet (Xu §5.2) on leave-one-out renders",
-              config=SupersampleConfig, version="5", run=run, inputs=inputs,
+              config=SupersampleConfig, version="6", run=run, inputs=inputs,
               outputs=(L.MODEL, L.TRAIN_JSON, L.LOSS_PNG))
