@@ -220,7 +220,7 @@ def _cmd_run(args, only: str | None = None, overrides: dict | None = None,
     configs = load_configs(stages, ws, overrides)
     with ws.lock(wait=args.wait), \
             make_executor(args.jobs, args.dask_scheduler, args.dask_local,
-                          **({"dask_watchdog_s": args.dask_timeout} if args.dask_scheduler or args.dask_local else {})) as executor:  # TEMP until executors lands
+                          dask_watchdog_s=args.dask_timeout) as executor:
         results = run(stages, ws, configs, selected, args.force, executor,
                       progress=not args.no_progress, command=command)
     log.info("\n%s", timing_table(results))

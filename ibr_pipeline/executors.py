@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from typing import Callable, Iterator, Sequence
+
+from .errors import InputError
 
 log = logging.getLogger("ibr_pipeline.executors")
 
@@ -72,15 +75,33 @@ class LocalExecutor(Executor):
             self._pool = None
 
 
+class ClusterError(InputError):
+    """The Dask cluster cannot run the tasks (no worker for `watchdog_s`, the scheduler lost them):
+    the user must fix the cluster, not the data. Tasks finished before were yielded (and recorded);
+    a rerun continues. One line, exit code 2 (an InputError)."""
+
+
 class DaskExecutor(Executor):
     """Per-view tasks on a Dask cluster: an existing scheduler address, or a LocalCluster of n workers.
 
     Workers need `ibr_pipeline` importable and the workspace on a shared file system at the same path.
+
+    Progress watchdog: a scheduler whose workers all went away keeps the tasks queued forever. When
+    no worker has been connected and no task has finished for `watchdog_s` seconds,
+    `map_unordered` stops with a `ClusterError` naming the scheduler, after yielding every task
+    that finished. Workers that are connected but busy with long tasks never trip it.
     """
 
-    def __init__(self, scheduler: str | None = None, local_workers: int = 0):
+    poll_s = 1.0   # how often the scheduler is asked for its workers while nothing finishes
+    fetch_s = 10.0  # longest wait for a finished task's (small) result to come back
+
+    def __init__(self, scheduler: str | None = None, local_workers: int = 0,
+                 watchdog_s: float = 120.0):
         from distributed import Client, LocalCluster
 
+        if not watchdog_s > 0:
+            raise ValueError("watchdog_s must be > 0")
+        self.watchdog_s = float(watchdog_s)
         self._cluster = None
         if scheduler:
             self.client = Client(scheduler, timeout="30s")
@@ -90,20 +111,83 @@ class DaskExecutor(Executor):
                                          processes=True, dashboard_address=None)
             self.client = Client(self._cluster)
             self.name = f"dask LocalCluster ({max(1, local_workers)} workers)"
+        self.address = getattr(self.client.scheduler, "address", None) or scheduler or "?"
+
+    def _workers(self) -> int | None:
+        """Workers connected to the scheduler now; None when the scheduler does not answer."""
+        try:
+            return len(self.client.nthreads(callback_timeout=max(1.0, min(10.0, self.watchdog_s))))
+        except Exception as e:  # OSError, TimeoutError, CommClosedError: unreachable scheduler
+            log.debug("dask scheduler %s did not answer (%s)", self.address, e)
+            return None
+
+    def _stalled(self, finished: int, total: int, reachable: bool) -> ClusterError:
+        what = "no workers" if reachable else "unreachable (no answer)"
+        if self._cluster is not None:
+            fix = "the LocalCluster's workers died (out of memory?): lower --dask-local and rerun"
+        else:
+            fix = f"start workers (dask worker {self.address}) and rerun"
+        return ClusterError(f"dask scheduler {self.address}: {what} for {self.watchdog_s:g} s; "
+                            f"{finished} of {total} views finished and kept; {fix} "
+                            f"(--dask-timeout sets how long to wait)")
 
     def map_unordered(self, fn, argsets):
-        from distributed import as_completed as dask_as_completed
+        import queue
 
         futures = [self.client.submit(fn, *args, pure=False) for args in argsets]
         index = {f.key: i for i, f in enumerate(futures)}
+        done: queue.Queue = queue.Queue()
+        for f in futures:
+            f.add_done_callback(done.put)  # called in a thread, whatever the outcome
+        pending = {f.key for f in futures}
+        finished = 0
+        poll = min(self.poll_s, self.watchdog_s / 3)
         try:
-            for fut in dask_as_completed(futures):
-                if fut.status == "error":
-                    yield index[fut.key], None, fut.exception()
-                else:
-                    yield index[fut.key], fut.result(), None
+            # the watchdog clock restarts whenever a task finishes or a worker is seen connected
+            last_alive = last_poll = time.monotonic()
+            while pending:
+                try:
+                    fut = done.get(timeout=poll)
+                except queue.Empty:
+                    fut = None
+                if fut is not None and fut.key in pending:
+                    if fut.status == "cancelled":  # scheduler restarted or lost the task
+                        raise ClusterError(
+                            f"dask scheduler {self.address}: a task was cancelled by the cluster "
+                            f"(scheduler restarted or lost it); {finished} of {len(futures)} views "
+                            f"finished and kept; rerun to continue")
+                    item = None
+                    if fut.status == "error":
+                        item = index[fut.key], None, fut.exception()
+                    else:
+                        try:
+                            item = index[fut.key], fut.result(timeout=self.fetch_s), None
+                        except TimeoutError:
+                            # finished, but its worker left before the result came back: the
+                            # scheduler computes it again; wait for that (the watchdog applies)
+                            fut.add_done_callback(done.put)
+                    if item is not None:
+                        pending.discard(fut.key)
+                        finished += 1
+                        yield item
+                        last_alive = last_poll = time.monotonic()  # consumer time is not the cluster's
+                        continue
+                now = time.monotonic()
+                if now - last_poll < poll:
+                    continue
+                last_poll = now
+                n = self._workers()
+                reachable = n is not None
+                now = time.monotonic()
+                if n:
+                    last_alive = now
+                elif now - last_alive >= self.watchdog_s:
+                    raise self._stalled(finished, len(futures), reachable)
         finally:
-            self.client.cancel([f for f in futures if not f.done()])
+            try:
+                self.client.cancel([f for f in futures if not f.done()])
+            except Exception as e:  # a gone scheduler: nothing left to cancel
+                log.debug("could not cancel the remaining dask tasks (%s)", e)
 
     def close(self):
         self.client.close()
@@ -111,7 +195,10 @@ class DaskExecutor(Executor):
             self._cluster.close()
 
 
-def make_executor(jobs: int = 1, dask_scheduler: str | None = None, dask_local: int = 0) -> Executor:
+def make_executor(jobs: int = 1, dask_scheduler: str | None = None, dask_local: int = 0,
+                  dask_watchdog_s: float = 120.0) -> Executor:
+    """The executor the CLI flags ask for: Dask (`dask_watchdog_s`: stop when no worker has been
+    connected and no task finished for that long) or local processes."""
     if dask_scheduler or dask_local:
-        return DaskExecutor(dask_scheduler, dask_local)
+        return DaskExecutor(dask_scheduler, dask_local, watchdog_s=dask_watchdog_s)
     return LocalExecutor(jobs)

@@ -39,3 +39,97 @@ def test_failures_are_reported_per_view_on_every_executor(tmp_path, kind):
     assert res[1].result == "failed" and res[1].views_run == 7
     assert res[1].failures == [("v03", "ValueError: toy failure for v03")]
     assert len(_outputs(ws_root)) == 7
+
+
+# --- the Dask progress watchdog ---------------------------------------------------------------
+def _nap(i, seconds):
+    """A task for the watchdog tests (module level: workers import it by reference)."""
+    import time
+    time.sleep(seconds)
+    return i
+
+
+def _cluster(n_workers, threads=1):
+    from distributed import LocalCluster
+    return LocalCluster(n_workers=n_workers, threads_per_worker=threads, processes=False,
+                        dashboard_address=None)
+
+
+def test_dask_watchdog_stops_when_every_worker_left_and_yields_finished_first():
+    import time
+
+    from ibr_pipeline.errors import InputError
+    from ibr_pipeline.executors import ClusterError
+
+    got, t_gone = [], None
+    with _cluster(1) as cluster, DaskExecutor(cluster.scheduler_address, watchdog_s=3) as ex:
+        with pytest.raises(ClusterError) as err:
+            for i, out, exc in ex.map_unordered(_nap, [(k, 0.2) for k in range(12)]):
+                assert exc is None and out == i
+                got.append(i)
+                if len(got) == 3:
+                    cluster.scale(0)   # every worker leaves; the scheduler stays up
+                    t_gone = time.monotonic()
+        waited = time.monotonic() - t_gone
+    assert isinstance(err.value, InputError)   # the CLI prints it as one line, exit 2
+    assert 3 <= len(got) < 12
+    msg = str(err.value)
+    assert cluster.scheduler_address in msg and "no workers for 3 s" in msg
+    assert f"{len(got)} of 12 views finished and kept" in msg
+    assert f"dask worker {cluster.scheduler_address}" in msg
+    assert 3.0 <= waited < 12.0, waited
+
+
+def test_dask_watchdog_with_no_worker_from_the_start():
+    import time
+
+    from ibr_pipeline.executors import ClusterError, make_executor
+
+    with _cluster(0) as cluster:
+        t0 = time.monotonic()
+        with make_executor(dask_scheduler=cluster.scheduler_address, dask_watchdog_s=2) as ex:
+            assert ex.watchdog_s == 2
+            with pytest.raises(ClusterError, match="0 of 3 views"):
+                list(ex.map_unordered(_nap, [(k, 0.0) for k in range(3)]))
+        assert time.monotonic() - t0 < 10
+
+
+def test_dask_watchdog_never_trips_on_busy_workers():
+    """Tasks longer than the watchdog are fine while their workers stay connected."""
+    with _cluster(1, threads=2) as cluster, DaskExecutor(cluster.scheduler_address,
+                                                         watchdog_s=0.6) as ex:
+        got = sorted(out for _, out, _ in ex.map_unordered(_nap, [(k, 2.0) for k in range(2)]))
+    assert got == [0, 1]
+
+
+def test_runner_keeps_views_finished_before_the_workers_left(tmp_path):
+    """Through the runner: the views finished before the cluster lost its workers are recorded, the
+    run stops with ClusterError, and a rerun does only the rest."""
+    import threading
+    import time
+
+    from ibr_pipeline.executors import ClusterError
+
+    ws_root = make_toy_workspace(tmp_path / "ws", n_views=10)
+    state = ws_root / ".ibr" / "state" / "upper"
+    ws = Workspace(ws_root)
+    configs = load_configs(STAGES, ws, {"upper": {"sleep": "0.3"}})
+    with _cluster(1) as cluster, DaskExecutor(cluster.scheduler_address, watchdog_s=2) as ex:
+        def drop_workers():
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and len(list(state.glob("*.json"))) < 2:
+                time.sleep(0.02)
+            cluster.scale(0)
+        watcher = threading.Thread(target=drop_workers, daemon=True)
+        watcher.start()
+        with pytest.raises(ClusterError, match="views finished and kept"):
+            run(STAGES, ws, configs, STAGES[:2], executor=ex, progress=False)
+        watcher.join()
+    done = {p.stem for p in state.glob("*.json")}
+    assert 2 <= len(done) < 10
+    ran_before = (ws_root / "ranlog.txt").read_text().split()
+    results = run(STAGES, ws, configs, STAGES[:2], executor=LocalExecutor(1), progress=False)
+    assert results[1].views_run == 10 - len(done)
+    ran_after = (ws_root / "ranlog.txt").read_text().split()[len(ran_before):]
+    assert not set(ran_after) & done, "views recorded before the error were redone"
+    assert len(_outputs(ws_root)) == 10
