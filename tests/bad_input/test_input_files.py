@@ -121,6 +121,16 @@ def _colmap_ws(tmp_path, colmap_dir):
     return ws
 
 
+def _set_token(path, index, value):
+    """Replace token `index` of the first data line of a COLMAP text file."""
+    lines = path.read_text().splitlines()
+    i = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    parts = lines[i].split()
+    parts[index] = value
+    lines[i] = " ".join(parts)
+    path.write_text("\n".join(lines) + "\n")
+
+
 @pytest.mark.parametrize("kind", ["truncated_bin", "text_abc", "text_nan_pose", "text_not_utf8",
                                   "unknown_image"])
 def test_broken_colmap(capsys, tmp_path, colmap_dir, kind):
@@ -141,21 +151,10 @@ def test_broken_colmap(capsys, tmp_path, colmap_dir, kind):
         write_colmap_model(cams, sparse, text=True)
         p = sparse / "cameras.txt"
         if kind == "text_abc":
-            lines = p.read_text().splitlines()
-            i = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
-            parts = lines[i].split()
-            parts[4] = "abc"
-            lines[i] = " ".join(parts)
-            p.write_text("\n".join(lines) + "\n")
+            _set_token(p, 4, "abc")  # a camera parameter
             needle = "cameras.txt"
         elif kind == "text_nan_pose":
-            p = sparse / "images.txt"
-            lines = p.read_text().splitlines()
-            i = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
-            parts = lines[i].split()
-            parts[5] = "nan"
-            lines[i] = " ".join(parts)
-            p.write_text("\n".join(lines) + "\n")
+            _set_token(sparse / "images.txt", 5, "nan")  # a quaternion component
             needle = "images.txt: line"
         elif kind == "text_not_utf8":
             p.write_bytes(p.read_bytes() + b"\xff\xfe\n")
