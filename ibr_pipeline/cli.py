@@ -161,9 +161,7 @@ def _open_workspace(args, create: bool = True):
                 return _init_workspace(ws_path, given, force=False)
             if not given.is_dir():
                 raise InputError(f"{given}: input folder does not exist")
-            ws = Workspace(ws_path, must_exist=False)
-            ws._config = {"input": {"path": str(given.resolve())}}
-            return ws
+            return Workspace(ws_path, must_exist=False, config={"input": {"path": str(given.resolve())}})
         ws = Workspace(ws_path)
         if ws.input_root.resolve() != given.resolve():
             raise InputError(f"{ws.config_path}: workspace already uses input {ws.input_root}, "

@@ -53,11 +53,13 @@ def read_toml(path: Path) -> dict:
 
 
 class Workspace:
-    def __init__(self, root: Path | str, must_exist: bool = True):
+    def __init__(self, root: Path | str, must_exist: bool = True, config: dict | None = None):
+        """`config`: the parsed ibr.toml to use instead of reading one (a workspace that exists
+        only in memory, for `--dry-run`)."""
         self.root = Path(root).absolute()
         if must_exist and not self.root.is_dir():
             raise InputError(f"{self.root}: workspace does not exist (create it with `ibr init`)")
-        self._config: dict | None = None
+        self._config: dict | None = config
 
     # --- configuration file -------------------------------------------------------------------
     @property

@@ -55,6 +55,7 @@ class TrainOptions(Options):
         if self.vgg_weights and not self.vgg_weights.endswith((".pt", ".pth")):
             raise ConfigError(prefix + "vgg_weights", f"expected a .pt/.pth file, got "
                               f"{self.vgg_weights!r}")
-        if self.vgg_weights and escapes(self.vgg_weights):
-            raise ConfigError(prefix + "vgg_weights", f"{self.vgg_weights!r} "
-                              f"{escapes(self.vgg_weights)}: give a path inside the workspace")
+        why = escapes(self.vgg_weights) if self.vgg_weights else None
+        if why:
+            raise ConfigError(prefix + "vgg_weights", f"{self.vgg_weights!r} {why}: give a path "
+                              "inside the workspace")

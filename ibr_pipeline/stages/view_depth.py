@@ -97,9 +97,10 @@ class ViewDepthConfig(StageConfig):
         from ..errors import ConfigError, escapes
         if self.window % 2 == 0:
             raise ConfigError(prefix + "window", f"must be odd, got {self.window}")
-        if escapes(self.strokes_dir):
-            raise ConfigError(prefix + "strokes_dir", f"{self.strokes_dir!r} {escapes(self.strokes_dir)}: "
-                              "it names a sub-folder of the input folder")
+        why = escapes(self.strokes_dir)
+        if why:
+            raise ConfigError(prefix + "strokes_dir", f"{self.strokes_dir!r} {why}: it names a "
+                              "sub-folder of the input folder")
 
 
 def _strokes_key(ctx: StageContext, view: str) -> str:
