@@ -13,6 +13,9 @@ import re
 
 # --- ingest --------------------------------------------------------------------------------------
 SCENE = "scene.json"                              # the scene manifest
+INGEST_IMAGES = "ingest/images"                   # frames prepared from the input (undistorted, upright, video)
+INGEST_DEPTH = "ingest/depth"                     # depth frames rewritten as 16-bit mm on the colour camera
+INGEST_SPARSE = "ingest/sparse"                   # the input's COLMAP model with undistorted cameras
 
 # --- input folder (read, never written) -----------------------------------------------------------
 INPUT = "input/"

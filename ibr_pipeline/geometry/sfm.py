@@ -37,11 +37,12 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
             intrinsics: Camera | None = None, overlap: int = 10, threads: int = 1,
             max_image_size: int = 3200, init_min_inliers: int = 50, abs_pose_min_inliers: int = 15,
             init_min_tri_angle: float = 8.0, peak_threshold: float | None = None,
-            close_loop: bool = True) -> SfMResult:
+            close_loop: bool = True, single_camera: bool = True) -> SfMResult:
     """Run SIFT + matching + incremental mapping on `names` (paths relative to `image_dir`).
 
     intrinsics: one Camera whose K is shared by all images and kept fixed (PINHOLE); None lets
-    COLMAP estimate a SIMPLE_PINHOLE focal length per single shared camera. Returns the largest
+    COLMAP estimate a SIMPLE_PINHOLE focal length: one shared camera (`single_camera`), else
+    one per image (images of different sizes or cameras). Returns the largest
     reconstruction; work_dir receives database.db and the mapper's models.
 
     Mapper thresholds are relaxed from COLMAP's defaults (initial pair 100 inliers and 16°,
@@ -63,14 +64,14 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
     try:
         return _run_sfm(pycolmap, image_dir, names, work_dir, matching, intrinsics, overlap, threads,
                         max_image_size, init_min_inliers, abs_pose_min_inliers, init_min_tri_angle,
-                        peak_threshold, close_loop)
+                        peak_threshold, close_loop, single_camera)
     finally:
         pycolmap.logging.minloglevel = level
 
 
 def _run_sfm(pycolmap, image_dir, names, work_dir, matching, intrinsics, overlap, threads,
              max_image_size, init_min_inliers, abs_pose_min_inliers, init_min_tri_angle,
-             peak_threshold, close_loop) -> SfMResult:
+             peak_threshold, close_loop, single_camera=True) -> SfMResult:
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     db = work_dir / "database.db"
@@ -93,7 +94,8 @@ def _run_sfm(pycolmap, image_dir, names, work_dir, matching, intrinsics, overlap
     extract.use_gpu = False
     t0, c0 = time.perf_counter(), time.process_time()
     pycolmap.extract_features(db, image_dir, image_names=list(names),
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              camera_mode=pycolmap.CameraMode.SINGLE if single_camera
+                              else pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
                               extraction_options=extract, device=pycolmap.Device.cpu)
     stats["extract_s"], stats["extract_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
     mopt = pycolmap.FeatureMatchingOptions()

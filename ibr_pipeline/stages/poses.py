@@ -1,6 +1,7 @@
 """Stage `poses` (Xu et al. §4.1, first half): a camera for every image, in the scene frame.
 
-Poses are taken from the input (COLMAP model / cameras.json) unless `force_sfm`; otherwise pycolmap
+Poses are taken from the input (any pose source ingest read: COLMAP, nerfstudio, LLFF, TUM,
+ScanNet, cameras.json) unless `force_sfm`; otherwise pycolmap
 SfM (geometry/sfm.py), whose model is written here so that a failure of the dense stage after it
 never costs the SfM again. The scene frame (docs/DESIGN.md "Scene frame") is metric when the
 capture says how: RGB-D depth frames (SfM scaled to the depth at its keypoints and refined by ICP)
@@ -62,16 +63,19 @@ def inputs(ctx: StageContext) -> list[str]:
     for k in (L.USER_REFLECTORS, L.INPUT_CAMERAS, L.GT_CAMERAS):
         if ctx.ws.path(k).is_file():
             keys.append(k)
-    sparse = ctx.ws.path(L.INPUT_SPARSE)
-    if sparse.is_dir():
-        keys += [f"{L.INPUT_SPARSE}/{p.name}" for p in sorted(sparse.iterdir()) if p.is_file()]
+    if ctx.scene.sparse:
+        from ..io.colmap import model_files
+        keys += [ctx.ws.key(p) for p in model_files(ctx.ws.path(ctx.scene.sparse))]
     return keys
 
 
-def _image_dir(ws, scene) -> Path:
-    v = scene.views[0]
-    p = ws.path(v.image)
-    return Path(str(p)[: -len(v.name)]) if str(p).endswith(v.name) else p.parent
+def _link_images(ws, scene, folder: Path) -> None:
+    """`folder/<view name>` -> each view's image: SfM reads one folder by view name, while the
+    images may sit in the input folder and in ingest/ (prepared frames)."""
+    for v in scene.views:
+        link = folder / v.name
+        link.parent.mkdir(parents=True, exist_ok=True)
+        link.symlink_to(ws.path(v.image).resolve())
 
 
 def _matching(cfg, names) -> str:
@@ -87,20 +91,18 @@ def _run_sfm(ctx, given):
     import tempfile
 
     ws, cfg, scene = ctx.ws, ctx.config, ctx.scene
-    sizes = {}
-    for v in scene.views:
-        sizes.setdefault(image_size(ws.path(v.image)), v.image)
-    if len(sizes) > 1:
-        (s1, k1), (s2, k2) = list(sizes.items())[:2]
-        raise InputError(f"{ws.path(k2)}: image is {s2[0]}x{s2[1]} but {ws.path(k1)} is "
-                         f"{s1[0]}x{s1[1]}; SfM needs one camera (all images the same size)")
+    sizes = {image_size(ws.path(v.image)) for v in scene.views}
     matching = _matching(cfg, scene.names)
-    log.info("poses: SfM on %d images, %s matching", len(scene.names), matching)
-    intr = next(iter(given.values())) if given else None
+    # images of several sizes (phones, mixed cameras) get a camera each, as COLMAP's PER_IMAGE
+    log.info("poses: SfM on %d images, %s matching, %s", len(scene.names), matching,
+             "one shared camera" if len(sizes) == 1 else f"a camera per image ({len(sizes)} sizes)")
+    intr = next(iter(given.values())) if given and len(sizes) == 1 else None
     ws.path(".ibr").mkdir(exist_ok=True)
     with tempfile.TemporaryDirectory(dir=ws.path(".ibr"), prefix="sfm-") as tmp:
-        res = sfm.run_sfm(_image_dir(ws, scene), scene.names, Path(tmp), matching, intr,
-                          cfg.sequential_overlap, cfg.threads, close_loop=cfg.close_loop)
+        _link_images(ws, scene, Path(tmp) / "images")
+        res = sfm.run_sfm(Path(tmp) / "images", scene.names, Path(tmp) / "work", matching, intr,
+                          cfg.sequential_overlap, cfg.threads, close_loop=cfg.close_loop,
+                          single_camera=len(sizes) == 1)
     return res
 
 
@@ -248,9 +250,9 @@ def run(ctx: StageContext) -> None:
                  len(given), scene.source)
         cams = given
         report.update(pose_source=scene.source, reprojection_error_px=None)
-        if scene.source == "colmap" and ws.path(L.INPUT_SPARSE).is_dir():
-            import pycolmap
-            rec = pycolmap.Reconstruction(str(ws.path(L.INPUT_SPARSE)))
+        if scene.sparse:
+            from ..io.colmap import load_reconstruction
+            rec = load_reconstruction(ws.path(scene.sparse))
     else:
         res = _run_sfm(ctx, given)
         cams, rec = res.cameras, res.reconstruction
@@ -317,4 +319,4 @@ def run(ctx: StageContext) -> None:
 
 STAGE = Stage(name="poses", help="camera poses (given or COLMAP SfM) in a metric or normalised "
               "scene frame, held-out split, path check (Xu §4.1)",
-              config=PosesConfig, version="2", run=run, inputs=inputs, outputs=OUTPUTS)
+              config=PosesConfig, version="3", run=run, inputs=inputs, outputs=OUTPUTS)
