@@ -7,9 +7,13 @@ Conventions
 * Pixel centres: the centre of the top-left pixel is (0, 0) (OpenCV). COLMAP puts it at
   (0.5, 0.5); `io.colmap` converts (cx, cy) -= 0.5 on read and += 0.5 on write.
 * Units are metres. `depth` is z-depth along the optical axis; a distance along a ray is `range`.
-* Images are 8-bit PNG and their values are treated as **linear** intensities in [0, 1]
-  (`IMAGE_ENCODING`): no gamma is undone on read, and the synthetic renderer writes linear values,
-  so the layer composition I = I0 + beta * I1 (Xu et al. Eq. 3) holds in the stored values.
+* Colour images are 8-bit files in the **scene's encoding** (`Scene.image_encoding`, chosen by
+  `ingest`): "srgb" for photographs (the default), "linear" for our synthetic scenes, which say so
+  in gt/scene.json. Arrays in memory are always linear [0, 1]: `io.images.read_image(path, enc)`
+  decodes and `write_image(path, img, enc)` encodes, so the layer composition I = I0 + beta * I1
+  (Xu et al. Eq. 3), fusion and blending hold in linear radiance. Layer files (I0, I1) and renders
+  are stored in the scene's encoding, like the photographs they are compared with. Matching
+  (SfM, MVS, edges) works on the stored values, as COLMAP does.
 * Float rasters (depth, layers, flows) are .npy/.npz. RGB-D sensor depth is a 16-bit PNG in
   millimetres (TUM/Open3D convention, `DEPTH_PNG_SCALE`), 0 = no measurement. A depth frame may be
   smaller than its colour image (sensors are lower resolution) but must cover the same field of
@@ -28,7 +32,8 @@ import numpy as np
 
 from .errors import InputError, input_text
 
-IMAGE_ENCODING = "linear"
+IMAGE_ENCODING = "linear"  # what a scene.json without the field means (written before it existed)
+IMAGE_ENCODINGS = ("srgb", "linear")
 DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNG units per metre (mm)
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 
@@ -264,14 +269,18 @@ class Scene:
 
     views: tuple[View, ...]
     reflectors: tuple[Reflector, ...] = ()
-    source: str = ""  # how the input was read: "colmap", "cameras.json" or "images"
+    source: str = ""  # the input layout it was read from (io/inputs.py): "colmap", "nerfstudio", ...
     image_encoding: str = IMAGE_ENCODING
+    sparse: str | None = None  # key of a COLMAP model whose 3D points belong to the given poses
 
     def __post_init__(self) -> None:
         names = [v.name for v in self.views]
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise InputError(f"duplicate view names: {sorted(dup)}")
+        if self.image_encoding not in IMAGE_ENCODINGS:
+            raise InputError(f"scene image_encoding must be one of {IMAGE_ENCODINGS}, "
+                             f"got {self.image_encoding!r}")
 
     @property
     def names(self) -> list[str]:
@@ -289,7 +298,7 @@ class Scene:
 
     def to_dict(self) -> dict:
         return {"format": "ibr_pipeline.scene/1", "source": self.source,
-                "image_encoding": self.image_encoding,
+                "image_encoding": self.image_encoding, "sparse": self.sparse,
                 "views": [v.to_dict() for v in self.views],
                 "reflectors": [r.to_dict() for r in self.reflectors]}
 
@@ -301,7 +310,7 @@ class Scene:
         return Scene(tuple(View.from_dict(v) for v in d["views"]),
                      tuple(Reflector.from_dict(r, f"reflector {i}")
                            for i, r in enumerate(d.get("reflectors", []))),
-                     d.get("source", ""), d.get("image_encoding", IMAGE_ENCODING))
+                     d.get("source", ""), d.get("image_encoding", IMAGE_ENCODING), d.get("sparse"))
 
     @staticmethod
     def from_json(text: str) -> "Scene":

@@ -114,7 +114,8 @@ class Loader:
 
         from ..io.images import read_image
         cam = self.cams[name]
-        img = read_image(self.ws.path(self.scene_manifest.view(name).image))
+        img = read_image(self.ws.path(self.scene_manifest.view(name).image),
+                         self.scene_manifest.image_encoding)
         dkey = self.ws.view_file(name, L.DEPTH)
         try:
             depth = np.load(self.ws.path(dkey)).astype(np.float64)

@@ -1,5 +1,11 @@
-"""Image and RGB-D depth files. Values follow scene.py: 8-bit PNG read as linear [0, 1] floats,
-depth PNG 16-bit in millimetres (0 = no measurement, returned as 0.0 m).
+"""Image and RGB-D depth files. Values follow scene.py: 8-bit images in the scene's encoding
+(sRGB for photographs, linear for our synthetic scenes), read as linear [0, 1] floats; depth PNG
+16-bit in millimetres (0 = no measurement, returned as 0.0 m).
+
+`encoding` is the transfer function of the file: "srgb" files are decoded to linear on read and
+linear arrays encoded on write (IEC 61966-2-1), so that everything computed in between (the layer
+model I = I0 + beta I1 of Xu Eq. 3, fusion, blending) holds in linear radiance; "linear" files are
+taken as they are. Masks, edge maps and other non-colour images are always "linear".
 
 Every reader raises InputError naming the file for anything it cannot decode (truncated files,
 wrong bit depth, wrong channel count), because that is what a user must fix.
@@ -47,12 +53,46 @@ def image_size(path: Path) -> tuple[int, int]:
         raise InputError(f"{path}: cannot read image header ({e})") from None
 
 
-def read_image(path: Path) -> np.ndarray:
-    """(H, W, 3) float32 RGB in [0, 1]. Grey images are expanded; alpha is dropped."""
+ENCODINGS = ("srgb", "linear")
+
+
+def _check_encoding(encoding: str) -> None:
+    if encoding not in ENCODINGS:
+        raise ValueError(f"encoding must be one of {ENCODINGS}, got {encoding!r}")
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB-encoded [0, 1] -> linear [0, 1] (IEC 61966-2-1)."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1)."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def decode(image: np.ndarray, encoding: str) -> np.ndarray:
+    """Stored values in `encoding` -> linear floats."""
+    _check_encoding(encoding)
+    return srgb_to_linear(image) if encoding == "srgb" else np.asarray(image, dtype=np.float32)
+
+
+def encode(image: np.ndarray, encoding: str) -> np.ndarray:
+    """Linear floats -> values to store in `encoding`."""
+    _check_encoding(encoding)
+    return linear_to_srgb(image) if encoding == "srgb" else np.asarray(image, dtype=np.float32)
+
+
+def read_image(path: Path, encoding: str = "linear") -> np.ndarray:
+    """(H, W, 3) float32 RGB in [0, 1], linear (decoded from `encoding`). Grey images are
+    expanded; alpha is dropped."""
+    _check_encoding(encoding)
     im = _open(Path(path))
     if im.mode not in ("RGB", "RGBA", "L", "P", "LA"):
         raise InputError(f"{path}: unsupported image mode {im.mode} (need 8-bit RGB or grey)")
-    return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    return decode(np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0, encoding)
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
@@ -62,8 +102,12 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(np.nan_to_num(arr) * 255.0), 0, 255).astype(np.uint8)
 
 
-def write_image(path: Path, image: np.ndarray) -> None:
-    """Write (H, W, 3) or (H, W) floats in [0, 1] (or uint8) as 8-bit PNG, atomically."""
+def write_image(path: Path, image: np.ndarray, encoding: str = "linear") -> None:
+    """Write (H, W, 3) or (H, W) linear floats in [0, 1] (or uint8, written as given) as 8-bit PNG
+    in `encoding`, atomically."""
+    _check_encoding(encoding)
+    if encoding == "srgb" and np.asarray(image).dtype != np.uint8:
+        image = linear_to_srgb(image)
     arr = to_uint8(image)
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (3, 4)):
         raise ValueError(f"image must be (H, W), (H, W, 3) or (H, W, 4), got {arr.shape}")

@@ -156,7 +156,8 @@ class IBRModel:
         if s.visibility == "auto":
             s = replace(s, visibility=auto_visibility(ws))
         for name in tqdm(names, desc="loading views", unit="view", disable=not progress, leave=False):
-            views.append(load_view(ws, name, cams[name], scene.view(name).image, layers, s))
+            views.append(load_view(ws, name, cams[name], scene.view(name).image, layers, s,
+                                   scene.image_encoding))
         return cls(views, s)
 
     # --- view selection (§5.1.1–5.1.2) -----------------------------------------------------------
@@ -440,8 +441,9 @@ def mask_boundary(mask: np.ndarray) -> np.ndarray:
 
 
 def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
-              s: RenderSettings) -> ViewData:
-    """One view's LayerData from the files of docs/PIPELINE.md (view_mesh + reflection)."""
+              s: RenderSettings, encoding: str = "linear") -> ViewData:
+    """One view's LayerData from the files of docs/PIPELINE.md (view_mesh + reflection); colour
+    files stored in `encoding` (the scene's) are decoded to linear for blending."""
     from ..io.images import read_image
     from ..io.mesh import read_ply
 
@@ -449,7 +451,7 @@ def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
     H, W = camera.height, camera.width
 
     def img(key):
-        a = read_image(ws.path(key))
+        a = read_image(ws.path(key), encoding)
         if a.shape[:2] != (H, W):
             raise InputError(f"{ws.path(key)}: image is {a.shape[1]}x{a.shape[0]}, camera says {W}x{H}")
         return a

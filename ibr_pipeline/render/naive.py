@@ -52,9 +52,10 @@ class NaiveWarp:
     use (only the views nearest to the rendered cameras are ever read)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, views: dict, lam: float = 0.1,
-                 max_views: int = MAX_VIEWS):
+                 max_views: int = MAX_VIEWS, encoding: str = "linear"):
         if not views:
             raise ValueError("NaiveWarp needs at least one captured view")
+        self.encoding = encoding  # of the image files given by path: decoded to linear on read
         self.scene = raycast.build_scene(vertices, faces)
         self.views = dict(views)
         self.lam = lam
@@ -76,7 +77,7 @@ class NaiveWarp:
             img = self.views[name][1]
             if not isinstance(img, np.ndarray):
                 from ..io.images import read_image
-                img = read_image(img)
+                img = read_image(img, self.encoding)
             self._image[name] = np.asarray(img[..., :3], np.float32)
         return self._image[name]
 
@@ -142,4 +143,4 @@ def from_workspace(ws, lam: float = 0.1) -> NaiveWarp | None:
     scene = ws.scene()
     views = {name: (cam, ws.path(scene.view(name).image)) for name, cam in cams.items()}
     mesh = read_ply(mesh_path)
-    return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam)
+    return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam, encoding=scene.image_encoding)

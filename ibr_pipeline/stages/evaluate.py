@@ -180,6 +180,13 @@ def _scores(ref, img, mask, with_flip: bool) -> dict:
     return {k: float(v) for k, v in m.items()}
 
 
+def _psnr_in(space: str, ref, img) -> float:
+    """PSNR of two linear images after encoding both in `space`."""
+    from .. import metrics
+    from ..io.images import encode
+    return float(metrics.psnr(encode(ref, space), encode(img, space)))
+
+
 def mean_metrics(rows: list[dict]) -> dict:
     """Per-key mean over rows, ignoring NaN/missing values (None when a key has none)."""
     import numpy as np
@@ -211,10 +218,12 @@ def temporal(frames: list, gt: list | None) -> dict:
 def run(ctx: StageContext) -> None:
     import numpy as np
 
-    from ..io.images import read_image, write_image
+    from ..io.images import encode, read_image, write_image
     from ..render.video import to_display, write_mp4
 
     ws, cfg = ctx.ws, ctx.config
+    enc = ctx.scene.image_encoding
+    other = "linear" if enc == "srgb" else "srgb"
     test = _set_cameras(ctx, "test")
     if not test:
         raise InputError(f"{ws.path(L.render_file('test', 'cameras.json'))}: no test renders (run render_views)")
@@ -228,8 +237,8 @@ def run(ctx: StageContext) -> None:
     per_view = []
     for i, (name, cam) in enumerate(test.items()):
         key = _gt_image_key(ctx, "test", name, source)
-        ref = read_image(ws.path(key))
-        ours = read_image(ws.path(L.render_file("test", f"{i:04d}.png")))
+        ref = read_image(ws.path(key), enc)
+        ours = read_image(ws.path(L.render_file("test", f"{i:04d}.png")), enc)
         if ref.shape != ours.shape:
             raise InputError(f"{ws.path(key)}: ground truth is {ref.shape[1]}x{ref.shape[0]}, "
                              f"the render {ours.shape[1]}x{ours.shape[0]}")
@@ -238,7 +247,7 @@ def run(ctx: StageContext) -> None:
                  "holes": holes.get(name)}
         imgs = {"ours": ours}
         if single:
-            imgs["single"] = read_image(ws.path(L.render_file("test_single", f"{i:04d}.png")))
+            imgs["single"] = read_image(ws.path(L.render_file("test_single", f"{i:04d}.png")), enc)
         if oracle is not None:
             f = oracle.render(cam, exclude=(name,) if source == "leave_one_out" else ())
             imgs["oracle"] = np.clip(f.color, 0, 1)
@@ -249,14 +258,16 @@ def run(ctx: StageContext) -> None:
             entry["nearest_view"], imgs["nearest"] = naive.nearest(
                 cam, exclude=(name,) if source == "leave_one_out" else ())
         for k, img in imgs.items():
-            sc = _scores(ref, img, mask, cfg.flip)
+            # published figures are on the stored (sRGB) images; the other space is named
+            sc = _scores(encode(ref, enc), encode(img, enc), mask, cfg.flip)
+            sc[f"psnr_{other}"] = _psnr_in(other, ref, img)
             rows[k].append(sc)
             entry[k] = sc
         per_view.append(entry)
         err = np.repeat(np.clip(np.abs(ours - ref).mean(2, keepdims=True) * 4, 0, 1), 3, 2)
         panel = [ours, ref, imgs.get("single", np.zeros_like(ours)), err]
         write_image(ws.path(f"{L.SIDE_BY_SIDE}/{i:04d}.png"),
-                    np.concatenate([to_display(p) for p in panel], 1))
+                    np.concatenate([to_display(p) for p in panel], 1))  # display sRGB
     if oracle is not None:
         oracle.release()
     methods = {k: mean_metrics(v) for k, v in rows.items() if v}
@@ -277,14 +288,15 @@ def run(ctx: StageContext) -> None:
     fly = _set_cameras(ctx, "fly")
     if fly:
         fsrc = _source(ctx, "fly")
-        frames = [read_image(ws.path(L.render_file("fly", f"{i:04d}.png"))) for i in range(len(fly))]
+        frames = [read_image(ws.path(L.render_file("fly", f"{i:04d}.png")), enc) for i in range(len(fly))]
         gkeys = [_gt_image_key(ctx, "fly", n, fsrc) for n in fly]
-        gt = ([read_image(ws.path(k)) for k in gkeys]
+        gt = ([read_image(ws.path(k), enc) for k in gkeys]
               if all(k and ws.path(k).is_file() for k in gkeys) else None)
         result["temporal"] = {"ours": temporal(frames, gt)}
         fs = _set_cameras(ctx, "fly_single")
         if fs:
-            sframes = [read_image(ws.path(L.render_file("fly_single", f"{i:04d}.png"))) for i in range(len(fs))]
+            sframes = [read_image(ws.path(L.render_file("fly_single", f"{i:04d}.png")), enc)
+                       for i in range(len(fs))]
             result["temporal"]["single"] = temporal(sframes, gt)
         for k, v in result["temporal"]["ours"].items():
             summary[f"fly_{k}"] = v
@@ -353,4 +365,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="3", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="4", run=run, inputs=inputs, outputs=outputs)

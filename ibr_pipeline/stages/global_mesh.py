@@ -107,7 +107,7 @@ def _depth_frames(ctx, cams, depth_views, reflectors, view_masks, stats):
         if reflectors:
             d, n = apply_reflectors(c, d, reflectors, cfg.reflector_fill, view_masks.get(name))
             stats["reflector_pixels"] += n
-        yield d, c, read_image(ws.path(ctx.scene.view(name).image))
+        yield d, c, read_image(ws.path(ctx.scene.view(name).image), ctx.scene.image_encoding)
 
 
 def _auto_voxel(ctx, cams, depth_views, mvs_depths, metric: bool) -> float:
@@ -253,7 +253,7 @@ def run(ctx: StageContext) -> None:
                     vm = {k: _resize_mask(m, c.size) for k, m in view_masks.get(n, {}).items()}
                     d, k = apply_reflectors(c, d, reflectors, cfg.reflector_fill, vm)
                     stats["reflector_pixels"] += k
-                yield d, c, read_image(ws.path(scene.view(n).image))
+                yield d, c, read_image(ws.path(scene.view(n).image), scene.image_encoding)
         frames = _mvs_frames()
     try:
         mesh, fstats = tsdf_fuse(frames, fopts, progress=cfg.progress and ctx.progress, total=len(cams))
@@ -293,4 +293,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="the global mesh of the training views (RGB-D TSDF "
               "fusion or MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="6", run=run, inputs=inputs, outputs=outputs)
+              config=GlobalMeshConfig, version="7", run=run, inputs=inputs, outputs=outputs)

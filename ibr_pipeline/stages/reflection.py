@@ -131,8 +131,9 @@ def run(ctx: StageContext, view: str) -> None:
     R = np.clip(np.minimum(R, img), 0, None)
     I0 = img - R  # Eq. 3: I = I0 + beta I1
     I1 = np.where(beta[..., None] > 0, R / np.maximum(beta, 1e-6)[..., None], 0.0)
-    write_image(ws.path(ws.view_file(view, L.I0)), np.clip(I0, 0, 1))
-    write_image(ws.path(ws.view_file(view, L.I1)), np.clip(I1, 0, 1))
+    enc = ctx.scene.image_encoding  # layer files are stored like the photographs
+    write_image(ws.path(ws.view_file(view, L.I0)), np.clip(I0, 0, 1), enc)
+    write_image(ws.path(ws.view_file(view, L.I1)), np.clip(I1, 0, 1), enc)
     with ws.atomic_write(ws.view_file(view, L.BETA)) as f:
         np.save(f, beta.astype(np.float32))
     M0 = read_ply(ws.path(ws.view_file(view, L.MESH)))  # M0: the refined-depth surface mesh
@@ -155,6 +156,6 @@ def run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",
-              config=ReflectionConfig, version="5", run=run, per_view=True,
+              config=ReflectionConfig, version="6", run=run, per_view=True,
               inputs=inputs, view_inputs=view_inputs, view_outputs=view_outputs,
               views=registered_views)

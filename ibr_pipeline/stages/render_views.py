@@ -117,7 +117,7 @@ def run(ctx: StageContext) -> None:
             f = model.render(cam, exclude=() if excl is None else (excl,),
                              previous=prev if sequential else None)
             prev = f
-            write_image(ws.path(L.render_file(s, f"{i:04d}.png")), f.color)
+            write_image(ws.path(L.render_file(s, f"{i:04d}.png")), f.color, ctx.scene.image_encoding)
             frames.append({"index": i, "name": name, "ms": round(f.ms, 3),
                            **{k: round(v, 3) for k, v in f.timings.items()},
                            "selected": f.selected, "holes": round(float(1 - f.covered.mean()), 5)})
@@ -135,4 +135,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="render_views", help="view selection and blending into novel views (Xu §5.1)",
-              config=RenderViewsConfig, version="3", run=run, inputs=inputs, outputs=outputs)
+              config=RenderViewsConfig, version="4", run=run, inputs=inputs, outputs=outputs)

@@ -141,7 +141,7 @@ def run(ctx: StageContext) -> None:
     render_s = time.perf_counter() - t0
     targets = {}
     for n in names:
-        img = read_image(ws.path(ctx.scene.view(n).image))
+        img = read_image(ws.path(ctx.scene.view(n).image), ctx.scene.image_encoding)
         if img.shape[:2] != (cams[n].height, cams[n].width):
             raise InputError(f"{ws.path(ctx.scene.view(n).image)}: image is "
                              f"{img.shape[1]}x{img.shape[0]}, its camera "
@@ -210,5 +210,5 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="supersample", help="train DSRNet (Xu §5.2) on leave-one-out renders",
-              config=SupersampleConfig, version="6", run=run, inputs=inputs,
+              config=SupersampleConfig, version="7", run=run, inputs=inputs,
               outputs=(L.MODEL, L.TRAIN_JSON, L.LOSS_PNG))
