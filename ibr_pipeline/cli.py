@@ -34,6 +34,7 @@ COMMAND_MODULES = (
     "ibr_pipeline.commands.render",   # ibr render
     "ibr_pipeline.commands.warp",     # ibr warp
     "ibr_pipeline.commands.report",   # ibr report
+    "ibr_pipeline.commands.export",   # ibr export
     "ibr_pipeline.commands.bench",    # ibr bench NAME (benchmarks/)
 )
 
