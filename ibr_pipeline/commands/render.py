@@ -17,12 +17,18 @@ def register(sub) -> None:
                        "the reflection layers when the reflection stage has run.")
     p.add_argument("workspace", type=Path, help="workspace folder")
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--cameras", type=Path, metavar="FILE", help="cameras.json of the views to render")
+    g.add_argument("--cameras", type=Path, metavar="FILE",
+                   help="the views to render: cameras.json, a nerfstudio transforms.json or "
+                   "camera_path.json (rendered as a sequence, with its MP4)")
     g.add_argument("--heldout", action="store_true",
                    help="the input's held-out cameras (gt/test_cameras.json); leave-one-out "
                    "capture views when there are none")
     g.add_argument("--path", choices=("fly",), help="fly: gt/flythrough_cameras.json, or a smooth "
                    "path through the registered cameras")
+    p.add_argument("--frame", choices=("scene", "input"), default="scene",
+                   help="--cameras are in the scene frame (what `ibr export` writes; default) or "
+                   "in the input's own frame (the poses the capture came with), mapped through "
+                   "global/poses.json")
     p.add_argument("--out", type=Path, help="output folder (default WS/renders/cli_<what>)")
     p.add_argument("--supersample", action="store_true",
                    help="render at low resolution and upsample with DSRNet (needs the supersample stage)")
@@ -47,6 +53,45 @@ def _supersampler(ws, self_ensemble: bool = False):
     return s
 
 
+def read_camera_file(path: Path) -> tuple[list, bool]:
+    """([(name, Camera)], is it a path) of a camera file: our cameras.json, a nerfstudio
+    transforms.json (its cameras; the images need not exist) or camera_path.json (a trajectory,
+    rendered as a sequence)."""
+    from ..errors import InputError
+    from ..io.nerfstudio import is_camera_path, is_transforms, read_camera_path, read_transforms
+    from ..scene import Camera, cameras_from_json
+    if not Path(path).is_file():
+        raise InputError(f"{path}: camera file not found")
+    if is_camera_path(path):
+        return [(f"path_{i:04d}", c) for i, c in enumerate(read_camera_path(path))], True
+    if is_transforms(path):
+        cap = read_transforms(path, Path(path).parent, images=False)
+        bent = [f.name for f in cap.frames if f.lens.distorted]
+        if bent:
+            raise InputError(f"{path}: frames {bent[:3]} have a distorted lens; cameras to render "
+                             "must be pinhole (set k1..k4, p1, p2 to 0)")
+        return [(f.name, Camera(f.lens.pinhole_K(), f.cam_from_world, f.lens.width, f.lens.height))
+                for f in cap.frames], False
+    return list(cameras_from_json(path).items()), False
+
+
+def _to_scene_frame(ws, cams: list) -> list:
+    """Cameras given in the input's frame (the poses it came with) -> the scene frame, through the
+    map the poses stage recorded (docs/DESIGN.md "Scene frame")."""
+    import numpy as np
+
+    from .. import layout as L
+    from ..errors import InputError
+    from ..geometry.align import transform_camera
+    p = ws.path(L.POSES_REPORT)
+    if not p.is_file():
+        raise InputError(f"{p}: no scene frame yet (run `ibr poses {ws.root}`)")
+    import json
+    tr = json.loads(p.read_text())["transform"]
+    s, R, t = float(tr["scale"]), np.asarray(tr["R"]), np.asarray(tr["t"])
+    return [(n, transform_camera(c, s, R, t)) for n, c in cams]
+
+
 def main(args: argparse.Namespace) -> int:
     import json
     import logging
@@ -58,7 +103,7 @@ def main(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..io.images import write_image
     from ..runner import StageContext
-    from ..scene import cameras_from_json, cameras_to_json
+    from ..scene import cameras_to_json
     from ..stages import render_views as rv
     from ..workspace import Workspace, atomic_path
     from ..render.ibr import IBRModel
@@ -66,14 +111,17 @@ def main(args: argparse.Namespace) -> int:
 
     log = logging.getLogger("ibr_pipeline.render")
     ws = Workspace(args.workspace)
+    enc = ws.scene().image_encoding  # frames are stored like the photographs
     if args.frames < 0 or not (0 < args.fps <= 240):
         raise InputError("--frames must be >= 0 and --fps in (0, 240]")
     from ..config import build_config
     cfg = build_config(rv.RenderViewsConfig, "render_views", ws.config().get("render_views", {}))
     ctx = StageContext(ws, "render_views", cfg, ws.scene())
     if args.cameras is not None:
-        cams = list(cameras_from_json(args.cameras).items())
-        excl, what, sequential = [None] * len(cams), "cameras", False
+        cams, sequential = read_camera_file(args.cameras)
+        if args.frame == "input":
+            cams = _to_scene_frame(ws, cams)
+        excl, what = [None] * len(cams), "cameras"
     else:
         sets = rv.render_sets(ctx)
         key = "test" if args.heldout else "fly"
@@ -110,7 +158,7 @@ def main(args: argparse.Namespace) -> int:
                                  previous=prev if sequential else None)
                 color = f.color
             prev = f
-            write_image(out / f"{i:04d}.png", color)
+            write_image(out / f"{i:04d}.png", color, enc)
             frames.append(color)
             rows.append({"index": i, "name": name, "ms": round(f.ms, 3), "selected": f.selected,
                          **{k: round(v, 3) for k, v in f.timings.items()}})
