@@ -143,8 +143,8 @@ def write_gt_workspace(scene: Path, ws_dir: Path, through: str = "view_mesh", *,
         l0 = vd.layers[0]
         write_ply(ws.path(ws.view_file(name, L.M0)), Mesh(l0.vertices, l0.faces))
         write_ply(ws.path(ws.view_file(name, L.M1)), Mesh(l1.vertices, l1.faces))
-        write_image(ws.path(ws.view_file(name, L.I0)), l0.rgb)
-        write_image(ws.path(ws.view_file(name, L.I1)), l1.rgb)
+        write_image(ws.path(ws.view_file(name, L.I0)), l0.rgb, sc.image_encoding)
+        write_image(ws.path(ws.view_file(name, L.I1)), l1.rgb, sc.image_encoding)
         with ws.atomic_write(ws.view_file(name, L.BETA)) as fh:
             np.save(fh, l0.beta.astype(np.float32))
     return ws

@@ -137,3 +137,29 @@ def test_reflection_energy_chart(tmp_path):
     (tmp_path / "views" / "b.png" / "layers.json").write_text("{")
     with pytest.raises(InputError, match="b.png"):
         ev._energy_histories(ws)
+
+
+def test_render_cameras_in_every_format(gt_ws, tmp_path):
+    """The same cameras as our cameras.json, a nerfstudio transforms.json and a camera_path.json
+    render the same frames (the tiny scene's cameras are centred and square, which camera_path
+    requires)."""
+    from ibr_pipeline.io.nerfstudio import write_camera_path, write_transforms
+    from ibr_pipeline.scene import cameras_from_json
+    cams = cameras_from_json(tiny_scene_cameras(gt_ws))
+    files = {"json": tmp_path / "cams.json", "transforms": tmp_path / "transforms.json",
+             "path": tmp_path / "camera_path.json"}
+    shutil.copy(tiny_scene_cameras(gt_ws), files["json"])
+    write_transforms(cams, files["transforms"])
+    write_camera_path([cams[n] for n in sorted(cams)], files["path"])
+    frames = {}
+    for k, f in files.items():
+        out = tmp_path / k
+        assert main(["render", str(gt_ws), "--cameras", str(f), "--out", str(out), "--no-progress"]) == 0
+        frames[k] = [read_image(p) for p in sorted(out.glob("*.png"))]
+        assert len(frames[k]) == len(cams)
+    order = sorted(cams)  # cameras.json keeps its order; transforms.json sorts by name
+    by_name = dict(zip(list(cams), frames["json"]))
+    for i, n in enumerate(order):
+        assert np.abs(frames["transforms"][i] - by_name[n]).max() <= 1 / 255 + 1e-6
+        assert np.abs(frames["path"][i] - by_name[n]).max() <= 1 / 255 + 1e-6
+    assert (tmp_path / "path" / "video.mp4").is_file()  # a camera path is a sequence
