@@ -249,5 +249,7 @@ def input_files(root: Path) -> list[Path]:
         found += model_files(layout.path)
     elif layout.name in ("nerfstudio", "llff", "cameras.json"):
         found.append(layout.path)
+        if layout.name == "llff" and (root / "hwf_cxcy.npy").is_file():
+            found.append(root / "hwf_cxcy.npy")
     found += [p for p in (root / "reflectors.json",) if p.is_file()]
     return sorted(set(found))

@@ -15,6 +15,10 @@ scene depth seen from each camera. Units are COLMAP's (arbitrary scale).
 
 Ours (scene.py): OpenCV world-to-camera, so R_cv's columns are [right, down, forward] =
 [R[:, 1], R[:, 0], -R[:, 2]], inverted.
+
+NeX's variant (Wizadwongsa et al. 2021, its "shiny" and repackaged LLFF scenes): N x 14 rows (the
+3x4 [R | t] alone, same axes) and the intrinsics in `hwf_cxcy.npy` = (H, W, fx, fy, cx, cy), the
+principal point as COLMAP gives it (NeX's data come from COLMAP through imgs2poses.py).
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ from .nerfstudio import cam_from_c2w
 
 FORMAT = "llff"
 POSES_FILE = "poses_bounds.npy"
+NEX_INTRINSICS = "hwf_cxcy.npy"
 _ASPECT_TOL = 0.01  # relative aspect-ratio difference between hwf and images/ that is refused
 
 
@@ -53,9 +58,10 @@ def _load(path: Path) -> np.ndarray:
     if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiu":
         raise InputError(f"{path}: expected an N x 17 float array, got "
                          f"{getattr(arr, 'dtype', type(arr).__name__)}")
-    if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] == 0:
+    nex = arr.ndim == 2 and arr.shape[1] == 14 and (path.parent / NEX_INTRINSICS).is_file()
+    if arr.ndim != 2 or arr.shape[1] != (14 if nex else 17) or arr.shape[0] == 0:
         raise InputError(f"{path}: expected an N x 17 array (3x5 pose + near, far per image), "
-                         f"got shape {arr.shape}")
+                         f"or N x 14 with {NEX_INTRINSICS} beside it (NeX), got shape {arr.shape}")
     arr = arr.astype(np.float64)
     bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
     if bad.size:
@@ -63,13 +69,34 @@ def _load(path: Path) -> np.ndarray:
     return arr
 
 
+def _nex_rows(root: Path, arr: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """NeX's N x 14 rows as LLFF's N x 17 (hwf from hwf_cxcy.npy), and its (fx, fy, cx, cy)."""
+    path = root / NEX_INTRINSICS
+    try:
+        k = np.load(path, allow_pickle=False).astype(np.float64).ravel()
+    except (ValueError, OSError, EOFError) as e:
+        raise InputError(f"{path}: not a readable .npy array ({e})") from None
+    if k.shape != (6,) or not np.all(np.isfinite(k)) or not np.all(k[:4] > 0):
+        raise InputError(f"{path}: expected 6 finite numbers H, W, fx, fy, cx, cy (H, W, fx, fy "
+                         f"> 0), got {k.tolist()[:8]}")
+    H, W, fx, fy, cx, cy = k
+    P = arr[:, :12].reshape(-1, 3, 4)
+    hwf = np.tile(np.array([H, W, fx])[None, :, None], (len(arr), 1, 1))
+    full = np.concatenate([np.concatenate([P, hwf], axis=2).reshape(len(arr), 15), arr[:, 12:]], 1)
+    return full, (fx, fy, cx, cy)
+
+
 def read_poses_bounds(root: Path) -> Capture:
-    """Read an LLFF folder (`poses_bounds.npy` + `images/`) into a Capture."""
+    """Read an LLFF folder (`poses_bounds.npy` + `images/`, or NeX's N x 14 + hwf_cxcy.npy) into
+    a Capture."""
     from .images import image_size
 
     root = Path(root)
     path = root / POSES_FILE
     arr = _load(path)
+    nex = None
+    if arr.shape[1] == 14:
+        arr, nex = _nex_rows(root, arr)
     img_dir = root / "images"
     if not img_dir.is_dir():
         raise InputError(f"{root}: LLFF input needs an images/ folder beside {POSES_FILE}")
@@ -97,8 +124,12 @@ def read_poses_bounds(root: Path) -> Capture:
             focal *= s
             rescaled[(W, H, w, h)] = s
         T = cam_from_c2w(_llff_to_c2w_cv(P), where)
-        # LLFF assumes the principal point at the image centre: (W/2, H/2) in COLMAP's convention
-        lens = Lens("PINHOLE", (focal, focal, w / 2, h / 2), w, h)
+        if nex is None:
+            # LLFF assumes the principal point at the image centre: (W/2, H/2) in COLMAP's convention
+            lens = Lens("PINHOLE", (focal, focal, w / 2, h / 2), w, h)
+        else:  # NeX gives both focals and the principal point, for W x H: scale them alike
+            s = w / W
+            lens = Lens("PINHOLE", (nex[0] * s, nex[1] * s, nex[2] * s, nex[3] * s), w, h)
         frames.append(Frame(name=image.name, image=image, cam_from_world=T, lens=lens))
 
     near, far = arr[:, 15], arr[:, 16]
@@ -107,7 +138,10 @@ def read_poses_bounds(root: Path) -> Capture:
     for (W, H, w, h), s in sorted(rescaled.items()):
         notes.append(f"{POSES_FILE}: poses are for {W:g}x{H:g} images, images/ holds {w}x{h}: "
                      f"focal scaled by {s:.6g}")
-    return Capture(format=FORMAT, frames=tuple(frames), files=(path, *images), notes=tuple(notes))
+    if nex is not None:
+        notes.append(f"{POSES_FILE}: NeX layout (N x 14 rows), intrinsics from {NEX_INTRINSICS}")
+    files = (path, *images) + ((root / NEX_INTRINSICS,) if nex is not None else ())
+    return Capture(format=FORMAT, frames=tuple(frames), files=files, notes=tuple(notes))
 
 
 def write_poses_bounds(cameras: dict[str, Camera], path: Path,

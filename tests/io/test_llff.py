@@ -146,3 +146,21 @@ def test_write_refuses_what_llff_cannot_store(tmp_path):
     with pytest.raises(ValueError, match="near"):
         write_poses_bounds({"a.png": cam}, tmp_path / "p.npy", near_far=(2, 1))
     assert not (tmp_path / "p.npy").exists()
+
+
+def test_nex_layout(tmp_path):
+    """NeX's N x 14 rows with hwf_cxcy.npy give the same poses, and its own (fx, fy, cx, cy),
+    scaled with the images."""
+    cams = forward_facing()
+    root = llff_folder(tmp_path, cams, size=(20, 15))  # images at half the poses' size
+    full = np.load(root / "poses_bounds.npy")
+    P = full[:, :15].reshape(-1, 3, 5)
+    np.save(root / "poses_bounds.npy", np.c_[P[:, :, :4].reshape(-1, 12), full[:, 15:]])
+    np.save(root / "hwf_cxcy.npy", np.array([[30.0], [40.0], [51.0], [52.0], [21.0], [14.0]]))
+    cap = read_poses_bounds(root)
+    for f in cap.frames:
+        np.testing.assert_allclose(f.cam_from_world, cams[f.name].cam_from_world, atol=1e-9)
+        assert f.lens.params == (25.5, 26.0, 10.5, 7.0) and (f.lens.width, f.lens.height) == (20, 15)
+    assert any("NeX" in n for n in cap.notes) and root / "hwf_cxcy.npy" in cap.files
+    (root / "hwf_cxcy.npy").unlink()  # 14 columns without the intrinsics: refused, naming both
+    refused(root, "poses_bounds.npy", "hwf_cxcy.npy")
