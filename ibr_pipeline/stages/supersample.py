@@ -85,10 +85,21 @@ def run(ctx: StageContext) -> None:
     from ..render.low_res import IBRRenderer, StandInRenderer
     from ..workspace import atomic_path
 
+    from collections import Counter
+
     t_start = time.perf_counter()
     ws, cfg = ctx.ws, ctx.config
     cams = L.registered_cameras(ws)
     names = registered_views(ctx)
+    sizes = Counter(cams[n].size for n in names)
+    if len(sizes) > 1:
+        # DSRNet learns one upsampling and batches frames: it trains on the views of the most
+        # common size (a capture mixing cameras has a main one); the others are left out
+        main = max(sizes, key=lambda sz: (sizes[sz], sz))
+        left = [n for n in names if cams[n].size != main]
+        names = [n for n in names if cams[n].size == main]
+        log.info("supersample: views of %d sizes; training on the %d at %dx%d, leaving out %d (%s)",
+                 len(sizes), len(names), *main, len(left), ", ".join(left[:5]))
     tcfg = cfg.train
     if tcfg.vgg_weights and not ws.path(tcfg.vgg_weights).is_file():
         raise InputError(f"{ws.path(tcfg.vgg_weights)}: supersample.train.vgg_weights file not found")
