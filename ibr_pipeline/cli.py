@@ -194,7 +194,9 @@ def _cmd_status(args) -> int:
     else:
         print(status_table(plans))
         from . import layout as L
-        from .report import scene_frame_line
+        from .report import input_line, scene_frame_line
+        if ws.path(L.SCENE).is_file():
+            print(input_line(ws.scene().to_dict()))
         frame = L.poses_report(ws)
         if frame.get("units"):
             print(scene_frame_line(frame))

@@ -230,6 +230,17 @@ def scene_frame_line(frame: dict) -> str:
     return f"Scene frame: {what}. Poses from {frame.get('pose_source', '?')}{held}."
 
 
+def input_line(scene: dict) -> str:
+    """One sentence on how the input was read (scene.json; report and `ibr status`)."""
+    views = scene.get("views", [])
+    posed = sum(v.get("camera") is not None for v in views)
+    prepared = sum(str(v.get("image", "")).startswith("ingest/") for v in views)
+    return (f"Input: {scene.get('source', '?')} layout, {len(views)} images ({posed} with cameras), "
+            f"colour {scene.get('image_encoding', 'linear')}"
+            + (f", {prepared} prepared into ingest/ (undistorted, upright or from a video)"
+               if prepared else "") + ".")
+
+
 def build(ws_root: Path) -> Report:
     ws_root = Path(ws_root)
     if not (ws_root / "ibr.toml").is_file():
@@ -238,7 +249,8 @@ def build(ws_root: Path) -> Report:
     scene = _read_json(ws_root / "scene.json") or {}
     views = scene.get("views", [])
     rep.add("Scene", [("p", f"Workspace `{ws_root}`; {len(views)} input views, "
-                            f"{len(scene.get('reflectors', []))} user-given reflector(s).")])
+                            f"{len(scene.get('reflectors', []))} user-given reflector(s)."),
+                      ("p", input_line(scene))])
     frame = _read_json(ws_root / L.POSES_REPORT)
     if isinstance(frame, dict) and "units" in frame:
         src = ws_root / L.POSES_REPORT
