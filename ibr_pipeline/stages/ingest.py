@@ -84,19 +84,20 @@ def _input_key(root: Path, path: Path, what: str) -> str:
         raise InputError(f"{root}: {what}: {path} is outside the input folder") from None
 
 
-def _prepare(ctx, cap) -> tuple[list[View], dict]:
-    """Each frame as a View, converting into ingest/ what needs it; counts of what was done."""
+def _prepare(ctx, cap, where) -> tuple[list[View], dict]:
+    """Each frame as a View, converting what needs it into ingest/ keys (written where `where`
+    says: a staging folder until every check passed); counts of what was done."""
     from tqdm import tqdm
 
     from ..io.images import image_size
     from ..io.prepare import exif_orientation, plan, prepare
 
-    ws, root = ctx.ws, ctx.ws.input_root
+    root = ctx.ws.input_root
     video = [f for f in cap.frames if f.video_frame is not None]
     if video:
         from ..io.video import extract_frames
-        ws.path(L.INGEST_IMAGES).mkdir(parents=True, exist_ok=True)
-        extract_frames(video[0].image, [f.video_frame for f in video], ws.path(L.INGEST_IMAGES),
+        where(L.INGEST_IMAGES).mkdir(parents=True, exist_ok=True)
+        extract_frames(video[0].image, [f.video_frame for f in video], where(L.INGEST_IMAGES),
                        [f.name for f in video])
     done = {"undistorted": 0, "rotated": 0, "depth_converted": 0, "exif_ignored": 0}
     views = []
@@ -105,7 +106,7 @@ def _prepare(ctx, cap) -> tuple[list[View], dict]:
         stem = Path(f.name).with_suffix("").as_posix()
         if f.video_frame is not None:
             key = f"{L.INGEST_IMAGES}/{f.name}"
-            size, orient = image_size(ws.path(key)), 1
+            size, orient = image_size(where(key)), 1
         else:
             key = _input_key(root, f.image, f"frame {f.name}")
             size, orient = image_size(f.image), exif_orientation(f.image)
@@ -115,7 +116,7 @@ def _prepare(ctx, cap) -> tuple[list[View], dict]:
         if f.depth is not None:
             depth_key = (f"{L.INGEST_DEPTH}/{stem}.png" if p.depth else
                          _input_key(root, f.depth, f"depth of frame {f.name}"))
-        out_img, out_depth = ws.path(image_key), None if depth_key is None else ws.path(depth_key)
+        out_img, out_depth = where(image_key), None if depth_key is None else where(depth_key)
         for path in (out_img, out_depth):
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)
@@ -129,6 +130,17 @@ def _prepare(ctx, cap) -> tuple[list[View], dict]:
 
 
 def run(ctx: StageContext) -> None:
+    import tempfile
+
+    # everything prepared is staged and moved into ingest/ only once every check passed, so that
+    # refused input leaves the workspace as it was
+    with tempfile.TemporaryDirectory(dir=ctx.ws.root, prefix=".ibrtmp-ingest-") as tmp:
+        _run(ctx, Path(tmp))
+
+
+def _run(ctx: StageContext, staging: Path) -> None:
+    import os
+
     from tqdm import tqdm
 
     from ..io.images import image_size, read_depth_png, read_image
@@ -136,16 +148,20 @@ def run(ctx: StageContext) -> None:
 
     ws, cfg = ctx.ws, ctx.config
     root = ws.input_root
+
+    def where(key: str) -> Path:
+        return staging / key[len("ingest/"):] if key.startswith("ingest/") else ws.path(key)
+
     cap = read_capture(root, video_frames=cfg.video_frames)
     log.info("ingest: %s input (%d frames)", cap.format, len(cap.frames))
     for note in cap.notes:
         log.info("ingest: %s", note)
     if len(cap.frames) < cfg.min_views:
         raise InputError(f"{root}: {len(cap.frames)} image(s) found, ingest.min_views is {cfg.min_views}")
-    views, done = _prepare(ctx, cap)
+    views, done = _prepare(ctx, cap, where)
     for view in tqdm(views, desc="ingest: checking images", unit="img", leave=False,
                      disable=not ctx.progress):
-        path = ws.path(view.image)
+        path = where(view.image)
         if cfg.check_pixels:
             h, w = read_image(path).shape[:2]
         else:
@@ -154,7 +170,7 @@ def run(ctx: StageContext) -> None:
             raise InputError(f"{path}: image is {w}x{h} but its camera says "
                              f"{view.camera.width}x{view.camera.height}")
         if view.depth is not None:
-            dpath = ws.path(view.depth)
+            dpath = where(view.depth)
             dh, dw = read_depth_png(dpath).shape
             if abs(dw / dh - w / h) > 0.01 * (w / h):
                 raise InputError(f"{dpath}: depth is {dw}x{dh}, which does not have the aspect "
@@ -162,17 +178,8 @@ def run(ctx: StageContext) -> None:
     sparse = None
     if cap.sparse is not None:
         if done["undistorted"]:
-            import os
-            import tempfile
-
             from ..io.colmap import write_undistorted_model
-            from ..workspace import atomic_path
-            ws.path("ingest").mkdir(exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=ws.path("ingest"), prefix=".ibrtmp-") as tmp:
-                write_undistorted_model(cap.sparse, Path(tmp))
-                for src in sorted(Path(tmp).iterdir()):
-                    with atomic_path(ws.path(f"{L.INGEST_SPARSE}/{src.name}")) as dst:
-                        os.replace(src, dst)
+            write_undistorted_model(cap.sparse, where(L.INGEST_SPARSE))
             sparse = L.INGEST_SPARSE
         else:
             sparse = ws.key(cap.sparse)
@@ -188,12 +195,16 @@ def run(ctx: StageContext) -> None:
             confined(root, rel, where)  # a shared reflectors.json must not read outside
             key = f"input/{rel}"
             mw, mh = image_size(ws.path(key))
-            iw, ih = image_size(ws.path(next(v.image for v in views if v.name == view_name)))
+            iw, ih = image_size(where(next(v.image for v in views if v.name == view_name)))
             if (mw, mh) != (iw, ih):
                 raise InputError(f"{ws.path(key)}: mask is {mw}x{mh}, its image is {iw}x{ih}")
             masks[view_name] = key
         reflectors.append(dataclasses.replace(r, masks=masks))
     scene = Scene(tuple(views), tuple(reflectors), cap.format, _encoding(cfg, cap, root), sparse)
+    for src in sorted(p for p in staging.rglob("*") if p.is_file()):  # every check passed
+        dst = ws.path(f"ingest/{src.relative_to(staging).as_posix()}")
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(src, dst)
     ws.write_text(ws.SCENE, scene.to_json())
     posed = len(scene.posed_views)
     log.info("ingest: %d images (%d with cameras, from %s), %d with depth, %d reflector(s), "

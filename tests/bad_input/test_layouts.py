@@ -94,3 +94,21 @@ def test_broken_video(capsys, tmp_path):
     (root / "walk.mp4").write_bytes(b"not a video at all" * 10)
     ws = _ws(tmp_path, root)
     refused(capsys, ["run", ws], root, ws, "walk.mp4")
+
+
+def test_refused_during_undistortion_leaves_nothing(capsys, tmp_path):
+    """Frames are prepared into a staging folder: a bad frame found after good ones were
+    undistorted leaves no ingest/ file behind."""
+    from ibr_pipeline.io.capture import Lens, colmap_camera
+    from ibr_pipeline.io.colmap import build_reconstruction
+    root = tmp_path / "in"
+    _images(root)
+    cams = cameras()
+    write_image(root / "images" / "3.png", np.zeros((30, 50, 3)))  # the last one is the wrong size
+    rec = build_reconstruction(cams)
+    rec.cameras[1] = colmap_camera(Lens("SIMPLE_RADIAL", (35.0, 20.0, 15.0, -0.05), 40, 30))
+    (root / "sparse" / "0").mkdir(parents=True)
+    rec.write_text(str(root / "sparse" / "0"))
+    ws = _ws(tmp_path, root)
+    refused(capsys, ["run", ws], root, ws, "3.png", "50x30", "40x30")
+    assert not (ws / "ingest").exists()
