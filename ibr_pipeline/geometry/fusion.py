@@ -261,8 +261,16 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
         c_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color, np.float32), device=dev))
         K = o3c.Tensor(cam.K, o3c.float64)
         T = o3c.Tensor(cam.cam_from_world, o3c.float64)
-        coords = vbg.compute_unique_block_coordinates(d_img, K, T, 1.0, far,
-                                                      options.trunc_voxels)
+        try:
+            coords = vbg.compute_unique_block_coordinates(d_img, K, T, 1.0, far,
+                                                          options.trunc_voxels)
+        except RuntimeError as e:
+            # open3d aborts on a frame whose valid pixels touch no voxel block (a handful of
+            # depths, e.g. an MVS view with almost no support): nothing to integrate, as above
+            if "No block is touched" not in str(e):
+                raise
+            skipped += 1
+            continue
         vbg.integrate(coords, d_img, c_img, K, T, 1.0, far, options.trunc_voxels)
         t_int += time.perf_counter() - t0
         n += 1
