@@ -147,7 +147,7 @@ def _lens(model: Any, intr: dict[str, float], dist: dict[str, float], what: str)
                      f"(readable: {', '.join(_PERSPECTIVE)}, OPENCV_FISHEYE)")
 
 
-def _inside(root: Path, folder: Path, rel: Any, what: str, must_exist: bool = True) -> tuple[Path, str]:
+def _inside(root: Path, folder: Path, rel: Any, what: str) -> tuple[Path, str]:
     """(file, its path relative to `root`) for a path named relative to `folder`, which is inside
     `root`; InputError when it is not a string, leaves `root` or does not exist."""
     if not isinstance(rel, str) or not rel:
@@ -155,7 +155,7 @@ def _inside(root: Path, folder: Path, rel: Any, what: str, must_exist: bool = Tr
     base = os.path.relpath(os.path.abspath(folder), os.path.abspath(root))
     joined = rel if os.path.isabs(rel) or base == "." else os.path.join(base, rel)
     file = confined(root, joined, f"{what} {rel!r}")
-    if must_exist and not file.is_file():
+    if not file.is_file():
         raise InputError(f"{what}: {rel!r} not found ({file})")
     return file, os.path.normpath(joined).replace(os.sep, "/")
 
@@ -213,7 +213,12 @@ def read_transforms(path: Path, root: Path, images: bool = True) -> Capture:
         c2w = _matrix4(fr["transform_matrix"], f"{where}: transform_matrix")
         T = cam_from_c2w(c2w @ GL_TO_CV, f"{where}: transform_matrix")
 
-        image, root_rel = _inside(root, path.parent, fr["file_path"], f"{where}: file_path", images)
+        if images:
+            image, root_rel = _inside(root, path.parent, fr["file_path"], f"{where}: file_path")
+        else:  # cameras only: the file path is a name, never opened, so it may lead anywhere
+            if not isinstance(fr["file_path"], str) or not fr["file_path"]:
+                raise InputError(f"{where}: file_path must be a path string")
+            image, root_rel = path.parent / fr["file_path"], os.path.basename(fr["file_path"])
         folder_rel = os.path.normpath(fr["file_path"]).replace(os.sep, "/")
         depth = None
         if images and fr.get("depth_file_path") is not None:

@@ -149,7 +149,8 @@ def test_render_cameras_in_every_format(gt_ws, tmp_path):
     files = {"json": tmp_path / "cams.json", "transforms": tmp_path / "transforms.json",
              "path": tmp_path / "camera_path.json"}
     shutil.copy(tiny_scene_cameras(gt_ws), files["json"])
-    write_transforms(cams, files["transforms"])
+    # as `ibr export` writes it: image paths lead out of the json's folder; only cameras are read
+    write_transforms(cams, files["transforms"], image_prefix="../../elsewhere/images/")
     write_camera_path([cams[n] for n in sorted(cams)], files["path"])
     frames = {}
     for k, f in files.items():
