@@ -32,6 +32,9 @@ REGISTERED_CAMERAS = "global/cameras.json"        # training views: the poses ev
 HELDOUT_CAMERAS = "global/heldout_cameras.json"   # held-out images (poses.holdout_every), scene frame
 POSES_REPORT = "global/poses.json"                # scene frame (units, scale), depth ranges, checks
 SCENE_REFLECTORS = "global/reflectors.json"       # the input's reflectors in the scene frame
+POSED_VIEWS = "global/views.json"                 # SfM estimated a distorted lens: the undistorted images
+SFM_IMAGES = "sfm/images"                         # ... written here (and depth frames to sfm/depth)
+SFM_DEPTH = "sfm/depth"
 
 # --- global_mesh ---------------------------------------------------------------------------------
 GLOBAL_MESH = "global/mesh.ply"                   # G (Xu §4.1)
@@ -118,6 +121,26 @@ def renderer_files(ws, view: str, layers: bool = True) -> list[str]:
         if has_two_layers(ws, view):
             keys += [view_file(view, f) for f in TWO_LAYER_FILES]
     return keys
+
+
+def posed_scene(ws, scene=None):
+    """The scene every stage after `poses` reads: scene.json, with each view's image and depth
+    replaced by the undistorted ones when SfM estimated a distorted lens (global/views.json)."""
+    import dataclasses
+
+    from .errors import InputError
+    scene = ws.scene() if scene is None else scene
+    p = ws.path(POSED_VIEWS)
+    if not p.is_file():
+        return scene
+    try:
+        views = json.loads(p.read_text())["views"]
+        keys = {n: (str(d["image"]), d.get("depth")) for n, d in views.items()}
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, AttributeError) as e:
+        raise InputError(f"{p}: malformed ({e}); rerun `ibr poses {ws.root} --force`") from None
+    return dataclasses.replace(scene, views=tuple(
+        dataclasses.replace(v, image=keys[v.name][0], depth=keys[v.name][1]) if v.name in keys
+        else v for v in scene.views))
 
 
 def registered_cameras(ws) -> dict:

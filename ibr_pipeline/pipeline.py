@@ -12,6 +12,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Sequence
 
+from . import layout as L
 from .config import StageConfig, build_config
 from .errors import ConfigError, InputError
 from .executors import Executor, LocalExecutor
@@ -66,19 +67,26 @@ def select_stages(stages: Sequence[Stage], from_stage: str | None = None,
     return list(stages[lo:hi + 1])
 
 
-def _load_scene(ws: Workspace):
-    return ws.scene() if ws.exists(ws.SCENE) else None
+# the stages that read the input's own images; every later one reads them through
+# layout.posed_scene (undistorted when SfM estimated a distorted lens)
+_BEFORE_POSED = ("ingest", "poses")
+
+
+def _load_scene(ws: Workspace, stage: str):
+    if not ws.exists(ws.SCENE):
+        return None
+    scene = ws.scene()
+    return scene if stage in _BEFORE_POSED else L.posed_scene(ws, scene)
 
 
 def status(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
            force: bool = False, selected: Sequence[Stage] | None = None) -> list[StagePlan]:
     """The plan for every stage in order: would it run, and why. Reads only."""
     hashes = HashCache(ws.hash_cache_path)
-    scene = _load_scene(ws)
     selected_names = {s.name for s in (selected if selected is not None else stages)}
     plans, upstream = [], None
     for s in stages:
-        ctx = StageContext(ws, s.name, configs[s.name], scene)
+        ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws, s.name))
         plan = plan_stage(s, ctx, hashes, force and s.name in selected_names, upstream)
         if plan.state == "will run" and s.name not in selected_names:
             plan.reasons = ["not selected (--from/--until)"] + plan.reasons
@@ -187,7 +195,7 @@ def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
     results: list[StageResult] = []
     try:
         for s in selected:
-            ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws), progress=progress)
+            ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws, s.name), progress=progress)
             plan = plan_stage(s, ctx, hashes, force, None)
             if plan.state == "blocked":
                 log.warning("stage %-13s blocked: %s", s.name, plan.summary())

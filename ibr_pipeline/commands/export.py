@@ -73,9 +73,11 @@ def _selected_cameras(ws, views_arg: str | None) -> dict:
 
 
 def _image_paths(ws, names) -> dict[str, Path]:
-    """{view name: its image file} from scene.json (`image` keys resolved by the workspace)."""
+    """{view name: its image file} from scene.json (`image` keys resolved by the workspace;
+    the undistorted images when SfM estimated a distorted lens)."""
+    from .. import layout as L
     from ..errors import InputError
-    scene = ws.scene()
+    scene = L.posed_scene(ws)
     images = {v.name: ws.path(v.image) for v in scene.views}
     for n in names:
         if n not in images:

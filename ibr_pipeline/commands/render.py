@@ -116,7 +116,7 @@ def main(args: argparse.Namespace) -> int:
         raise InputError("--frames must be >= 0 and --fps in (0, 240]")
     from ..config import build_config
     cfg = build_config(rv.RenderViewsConfig, "render_views", ws.config().get("render_views", {}))
-    ctx = StageContext(ws, "render_views", cfg, ws.scene())
+    ctx = StageContext(ws, "render_views", cfg, L.posed_scene(ws))
     if args.cameras is not None:
         cams, sequential = read_camera_file(args.cameras)
         if args.frame == "input":

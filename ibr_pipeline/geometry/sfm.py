@@ -37,12 +37,15 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
             intrinsics: Camera | None = None, overlap: int = 10, threads: int = 1,
             max_image_size: int = 3200, init_min_inliers: int = 50, abs_pose_min_inliers: int = 15,
             init_min_tri_angle: float = 8.0, peak_threshold: float | None = None,
-            close_loop: bool = True, single_camera: bool = True) -> SfMResult:
+            close_loop: bool = True, single_camera: bool = True,
+            camera_model: str = "SIMPLE_PINHOLE") -> SfMResult:
     """Run SIFT + matching + incremental mapping on `names` (paths relative to `image_dir`).
 
     intrinsics: one Camera whose K is shared by all images and kept fixed (PINHOLE); None lets
     COLMAP estimate a SIMPLE_PINHOLE focal length: one shared camera (`single_camera`), else
-    one per image (images of different sizes or cameras). Returns the largest
+    one per image (images of different sizes or cameras). `camera_model` is the COLMAP model then
+    estimated: with a distorted one (SIMPLE_RADIAL, ...) `cameras` hold only the pinhole part and
+    the reconstruction the lens; the caller undistorts. Returns the largest
     reconstruction; work_dir receives database.db and the mapper's models.
 
     Mapper thresholds are relaxed from COLMAP's defaults (initial pair 100 inliers and 16°,
@@ -64,14 +67,15 @@ def run_sfm(image_dir: Path, names: Sequence[str], work_dir: Path, matching: str
     try:
         return _run_sfm(pycolmap, image_dir, names, work_dir, matching, intrinsics, overlap, threads,
                         max_image_size, init_min_inliers, abs_pose_min_inliers, init_min_tri_angle,
-                        peak_threshold, close_loop, single_camera)
+                        peak_threshold, close_loop, single_camera, camera_model)
     finally:
         pycolmap.logging.minloglevel = level
 
 
 def _run_sfm(pycolmap, image_dir, names, work_dir, matching, intrinsics, overlap, threads,
              max_image_size, init_min_inliers, abs_pose_min_inliers, init_min_tri_angle,
-             peak_threshold, close_loop, single_camera=True) -> SfMResult:
+             peak_threshold, close_loop, single_camera=True,
+             camera_model="SIMPLE_PINHOLE") -> SfMResult:
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     db = work_dir / "database.db"
@@ -85,7 +89,7 @@ def _run_sfm(pycolmap, image_dir, names, work_dir, matching, intrinsics, overlap
         # COLMAP's pixel-centre convention is (0.5, 0.5) (scene.py)
         reader.camera_params = f"{K[0, 0]},{K[1, 1]},{K[0, 2] + 0.5},{K[1, 2] + 0.5}"
     else:
-        reader.camera_model = "SIMPLE_PINHOLE"
+        reader.camera_model = camera_model
     extract = pycolmap.FeatureExtractionOptions()
     extract.num_threads = threads
     extract.max_image_size = max_image_size

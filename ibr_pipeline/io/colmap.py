@@ -172,14 +172,13 @@ def write_colmap_model(cameras: dict[str, Camera], path: Path, text: bool = True
     (rec.write_text if text else rec.write_binary)(str(path))
 
 
-def write_undistorted_model(path: Path, out: Path) -> None:
-    """The model at `path` with every camera undistorted (io/undistort.py) and its keypoints
-    moved with it, as a text model in `out`: what COLMAP's image_undistorter writes as sparse/.
-    3D points do not move; the poses stage measures the scene scale from them."""
+def undistort_reconstruction(rec) -> None:
+    """Every camera of pycolmap reconstruction `rec` replaced, in place, by its undistorted pinhole
+    (io/undistort.py) and every keypoint moved with it: what COLMAP's image_undistorter does to a
+    model. 3D points do not move; the poses stage measures the scene scale from them."""
     from .capture import colmap_camera, lens_from_colmap_camera
     from .undistort import undistort_points, undistorted_lens
 
-    rec = load_reconstruction(path)
     lenses = {cid: lens_from_colmap_camera(c) for cid, c in rec.cameras.items()}
     new = {cid: undistorted_lens(lens) for cid, lens in lenses.items()}
     for image in rec.images.values():
@@ -191,5 +190,12 @@ def write_undistorted_model(path: Path, out: Path) -> None:
                 p.xy = xy
     for cid, lens in new.items():
         rec.cameras[cid] = colmap_camera(lens, camera_id=cid)
+
+
+def write_undistorted_model(path: Path, out: Path) -> None:
+    """The model at `path` undistorted (`undistort_reconstruction`), as a text model in `out`:
+    what COLMAP's image_undistorter writes as sparse/."""
+    rec = load_reconstruction(path)
+    undistort_reconstruction(rec)
     Path(out).mkdir(parents=True, exist_ok=True)
     rec.write_text(str(out))

@@ -147,7 +147,7 @@ class IBRModel:
         from tqdm import tqdm
 
         cams = L.registered_cameras(ws)
-        scene = ws.scene()
+        scene = L.posed_scene(ws)
         s = settings or RenderSettings()
         views = []
         names = [n for n in scene.names if n in cams]

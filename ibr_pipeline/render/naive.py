@@ -140,7 +140,7 @@ def from_workspace(ws, lam: float = 0.1) -> NaiveWarp | None:
     cams = L.registered_cameras(ws)
     if not cams:
         return None
-    scene = ws.scene()
+    scene = L.posed_scene(ws)
     views = {name: (cam, ws.path(scene.view(name).image)) for name, cam in cams.items()}
     mesh = read_ply(mesh_path)
     return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam, encoding=scene.image_encoding)

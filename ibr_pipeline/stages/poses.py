@@ -39,6 +39,11 @@ class PosesConfig(StageConfig):
     sequential_overlap: int = param(10, "sequential matching: neighbours matched per image", min=1, max=100)
     close_loop: bool = param(True, "sequential matching: also match the last images with the first "
                              "(a capture that walks round the room)")
+    camera_model: str = param("SIMPLE_PINHOLE", "SfM's camera when the input gives no intrinsics; "
+                              "a distorted model (COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV) is "
+                              "estimated and every image undistorted into sfm/images/ for the "
+                              "later stages", choices=("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL",
+                                                       "OPENCV"))
     min_registered: int = param(3, "fewer registered training views than this is an error", min=2)
     scale: float = param(0.0, "metres per input unit (given poses or SfM): makes the scene metric "
                          "when there are no depth frames; 0 = metric from depth frames if every "
@@ -52,6 +57,21 @@ class PosesConfig(StageConfig):
     max_jump: float = param(4.0, "warn when a step of the ordered camera path is longer than this "
                             "many median steps", min=1.0, max=1e3)
     threads: int = param(1, "threads for pycolmap", min=1, max=256, affects_output=False)
+
+
+def outputs(ctx: StageContext) -> list[str]:
+    """The fixed outputs, and with a distorted SfM lens global/views.json and the undistorted
+    images and depth frames it names."""
+    import json
+    keys = list(OUTPUTS)
+    p = ctx.ws.path(L.POSED_VIEWS)
+    if p.is_file():
+        try:
+            views = json.loads(p.read_text()).get("views", {})
+            keys += [L.POSED_VIEWS] + sorted(k for d in views.values() for k in d.values() if k)
+        except (json.JSONDecodeError, AttributeError, OSError):
+            pass  # a broken file: the stage reruns on "output changed"
+    return keys
 
 
 def inputs(ctx: StageContext) -> list[str]:
@@ -102,7 +122,7 @@ def _run_sfm(ctx, given):
         _link_images(ws, scene, Path(tmp) / "images")
         res = sfm.run_sfm(Path(tmp) / "images", scene.names, Path(tmp) / "work", matching, intr,
                           cfg.sequential_overlap, cfg.threads, close_loop=cfg.close_loop,
-                          single_camera=len(sizes) == 1)
+                          single_camera=len(sizes) == 1, camera_model=cfg.camera_model)
     return res
 
 
@@ -125,7 +145,7 @@ def _frame_depths(ctx, cams, depth_views) -> dict:
     from ..io.images import read_depth_png
     out = {}
     for n in (n for n in cams if n in depth_views):
-        d = read_depth_png(ctx.ws.path(depth_views[n]))[::8, ::8]
+        d = read_depth_png(depth_views[n])[::8, ::8]
         out[n] = d[d > 0].astype(np.float64)
     return out
 
@@ -136,7 +156,7 @@ def _depth_scale(ctx, cams, rec, depth_views, median_depth: float):
     from ..io.images import read_depth_png
     zs, zd = [], []
     for n, cam in ((n, c) for n, c in cams.items() if n in depth_views):
-        d = read_depth_png(ctx.ws.path(depth_views[n]))
+        d = read_depth_png(depth_views[n])
         uv, z = sfm.keypoint_depths(rec, n)
         sx, sy = d.shape[1] / cam.width, d.shape[0] / cam.height
         iu = np.clip(np.round((uv[:, 0] + 0.5) * sx - 0.5).astype(int), 0, d.shape[1] - 1)
@@ -150,7 +170,7 @@ def _depth_scale(ctx, cams, rec, depth_views, median_depth: float):
     dense = []
     with_depth = [(n, c) for n, c in scaled.items() if n in depth_views]
     for n, cam in with_depth[:: max(1, len(with_depth) // 20)]:
-        d = read_depth_png(ctx.ws.path(depth_views[n]))
+        d = read_depth_png(depth_views[n])
         c = cam.resized(d.shape[1], d.shape[0])
         uv = c.pixel_grid()[::4, ::4].reshape(-1, 2)
         z = d[::4, ::4].reshape(-1)
@@ -229,11 +249,51 @@ def _gt_alignment(ctx, cams) -> dict | None:
             "rms_residual": float(np.sqrt(np.mean(res ** 2)))}
 
 
+def _undistort(ctx, rec, cams, staging: Path):
+    """SfM estimated a distorted lens (`camera_model`): every registered image (and its depth) is
+    undistorted onto pycolmap's pinhole choice into `staging` (moved to sfm/images, sfm/depth
+    with the other outputs), the model's cameras and keypoints with them; later stages read these
+    images through global/views.json (layout.posed_scene)."""
+    from ..io.capture import Frame, lens_from_colmap_camera
+    from ..io.colmap import undistort_reconstruction
+    from ..io.prepare import Plan, prepare
+    lenses = {im.name: lens_from_colmap_camera(rec.cameras[im.camera_id])
+              for im in rec.images.values() if im.has_pose}
+    undistort_reconstruction(rec)
+    out, views = {}, {}
+    for n, cam in cams.items():
+        v = ctx.scene.view(n)
+        stem = Path(n).with_suffix("").as_posix()
+        img_key = f"{L.SFM_IMAGES}/{stem}.png"
+        depth_key = f"{L.SFM_DEPTH}/{stem}.png" if v.depth else None
+        f = Frame(n, ctx.ws.path(v.image), cam.cam_from_world, lenses[n],
+                  depth=ctx.ws.path(v.depth) if v.depth else None)
+        paths = [staging / Path(k).relative_to("sfm") for k in (img_key, depth_key) if k]
+        for q in paths:
+            q.parent.mkdir(parents=True, exist_ok=True)
+        out[n] = prepare(f, Plan(False, True, bool(v.depth)), None, paths[0],
+                         paths[1] if depth_key else None)
+        views[n] = {"image": img_key, "depth": depth_key}
+    lens = next(iter(lenses.values()))
+    log.info("poses: SfM's %s lens %s undistorted: %d images into %s", lens.model,
+             [round(x, 4) for x in lens.params], len(out), ctx.ws.path(L.SFM_IMAGES))
+    return out, views
+
+
 def run(ctx: StageContext) -> None:
+    import tempfile
+
+    # undistorted images are staged and moved into sfm/ with the other outputs, at the end
+    with tempfile.TemporaryDirectory(dir=ctx.ws.root, prefix=".ibrtmp-poses-") as tmp:
+        _run(ctx, Path(tmp))
+
+
+def _run(ctx: StageContext, staging: Path) -> None:
     import os
     import tempfile
 
     from ..geometry import align
+    from ..io.capture import lens_from_colmap_camera
     from ..geometry.scale import depth_range, holdout_names
     from ..io.colmap import write_colmap_model
     from ..scene import cameras_to_json
@@ -241,7 +301,7 @@ def run(ctx: StageContext) -> None:
 
     t_start = time.perf_counter()
     ws, cfg, scene = ctx.ws, ctx.config, ctx.scene
-    depth_views = {v.name: v.depth for v in scene.views if v.depth}
+    depth_views = {v.name: ws.path(v.depth) for v in scene.views if v.depth}  # files
     given = {v.name: v.camera for v in scene.views if v.camera is not None}
     report: dict = {"timings": {}}
     rec = None
@@ -264,6 +324,12 @@ def run(ctx: StageContext) -> None:
                         "kept and %d image(s) are dropped: %s. More overlap between neighbouring "
                         "photos joins them", res.stats["models"], res.stats["model_sizes"], len(lost),
                         ", ".join(lost[:8]))
+    posed_views = None
+    if report["pose_source"] == "sfm" and rec is not None and any(
+            lens_from_colmap_camera(c).distorted for c in rec.cameras.values()):
+        cams, posed_views = _undistort(ctx, rec, cams, staging)
+        depth_views = {n: staging / Path(k).relative_to("sfm") for n, d in posed_views.items()
+                       if (k := d["depth"])}
     report["timings"]["poses_s"] = time.perf_counter() - t_start
     s, R, t, units, how, depths = _frame(ctx, cams, rec, depth_views,
                                          given_poses=report["pose_source"] != "sfm")
@@ -308,6 +374,14 @@ def run(ctx: StageContext) -> None:
         for f in sorted(Path(tmp).iterdir()):
             with atomic_path(ws.path(f"sfm/{f.name}")) as dst:
                 os.replace(f, dst)
+    for src in sorted(p for p in staging.rglob("*") if p.is_file()):
+        dst = ws.path(f"sfm/{src.relative_to(staging).as_posix()}")
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(src, dst)
+    if posed_views is not None:
+        ws.write_json(L.POSED_VIEWS, {"format": "ibr_pipeline.views/1", "views": posed_views})
+    elif ws.path(L.POSED_VIEWS).is_file():
+        ws.path(L.POSED_VIEWS).unlink()  # a pinhole run after a distorted one: no stale overlay
     ws.write_text(L.REGISTERED_CAMERAS, cameras_to_json({n: cams[n] for n in training}))
     ws.write_text(L.HELDOUT_CAMERAS, cameras_to_json({n: cams[n] for n in heldout}))
     ws.write_json(L.SCENE_REFLECTORS, {"format": "ibr_pipeline.reflectors/1", "units": units,
@@ -319,4 +393,4 @@ def run(ctx: StageContext) -> None:
 
 STAGE = Stage(name="poses", help="camera poses (given or COLMAP SfM) in a metric or normalised "
               "scene frame, held-out split, path check (Xu §4.1)",
-              config=PosesConfig, version="3", run=run, inputs=inputs, outputs=OUTPUTS)
+              config=PosesConfig, version="3", run=run, inputs=inputs, outputs=outputs)
