@@ -201,8 +201,13 @@ def read_input(root: Path) -> Scene:
     """The Scene of an input folder that needs no preparation (pinhole lenses, 8-bit images in
     place, depth in mm): paths are `input/...` keys. The `ingest` stage handles every layout;
     this is the plain reading for tests and tools."""
-    root = Path(root).resolve()
+    import os
+    root = Path(os.path.abspath(root))
     cap = read_capture(root)
+
+    def key(path: Path) -> str:  # lexical: a symlinked images/ inside the folder is followed
+        return f"input/{Path(os.path.relpath(os.path.abspath(path), root)).as_posix()}"
+
     views = []
     for f in cap.frames:
         if f.video_frame is not None or (f.lens is not None and f.lens.distorted) or (
@@ -213,9 +218,8 @@ def read_input(root: Path) -> Scene:
         if f.cam_from_world is not None and f.lens is not None:
             from ..scene import Camera
             cam = Camera(f.lens.pinhole_K(), f.cam_from_world, f.lens.width, f.lens.height)
-        views.append(View(name=f.name, image=f"input/{f.image.resolve().relative_to(root).as_posix()}",
-                          camera=cam, depth=None if f.depth is None else
-                          f"input/{f.depth.resolve().relative_to(root).as_posix()}"))
+        views.append(View(name=f.name, image=key(f.image), camera=cam,
+                          depth=None if f.depth is None else key(f.depth)))
     return Scene(tuple(views), read_reflectors_file(root), cap.format)
 
 

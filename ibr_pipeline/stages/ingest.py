@@ -76,12 +76,13 @@ def _encoding(cfg, cap, root: Path) -> str:
 
 
 def _input_key(root: Path, path: Path, what: str) -> str:
-    """The `input/...` key of a file a reader named; readers confine their paths, this is the
-    last guard (a symlinked folder that leads outside the input is refused, not followed)."""
-    try:
-        return f"input/{Path(path).resolve().relative_to(Path(root).resolve()).as_posix()}"
-    except ValueError:
-        raise InputError(f"{root}: {what}: {path} is outside the input folder") from None
+    """The `input/...` key of a file a reader named inside the input folder. Lexical, like every
+    path check (docs/DESIGN.md "Errors"): a symlinked images/ the folder's owner made is followed."""
+    import os
+    rel = os.path.relpath(os.path.abspath(path), os.path.abspath(root))
+    if rel == ".." or rel.startswith(".." + os.sep) or os.path.isabs(rel):
+        raise InputError(f"{root}: {what}: {path} is outside the input folder")
+    return f"input/{Path(rel).as_posix()}"
 
 
 def _prepare(ctx, cap, where) -> tuple[list[View], dict]:

@@ -274,3 +274,17 @@ def test_colour_encoding(sample, tmp_path):
     (root / "gt" / "scene.json").write_text(json.dumps({"image_encoding": "linear"}))
     assert ingest(root, tmp_path / "b").image_encoding == "linear"  # a synthetic scene says so
     assert ingest(root, tmp_path / "c", "--colour", "srgb").image_encoding == "srgb"
+
+
+def test_symlinked_images_folder(sample, tmp_path):
+    """An images/ that is a symlink to the photos elsewhere (a common way to share them) is read
+    through the link: path checks are lexical (docs/DESIGN.md "Errors")."""
+    photos = tmp_path / "photos"
+    _copy_images(sample, photos)
+    root = tmp_path / "in"
+    root.mkdir()
+    (root / "images").symlink_to(photos / "images", target_is_directory=True)
+    (root / "cameras.json").write_text(cameras_to_json(sample))
+    scene = ingest(root, tmp_path / "ws")
+    assert_same_poses(scene, sample)
+    assert all(v.image == f"input/images/{v.name}" for v in scene.views)
