@@ -15,8 +15,7 @@ from pathlib import Path
 from ..errors import InputError
 from ..scene import IMAGE_EXTENSIONS, Scene, View, cameras_from_json, read_reflectors
 from .capture import Capture, Frame, Lens
-
-VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
+from .video import VIDEO_EXTENSIONS
 
 
 @dataclass(frozen=True)
