@@ -72,7 +72,8 @@ def select_stages(stages: Sequence[Stage], from_stage: str | None = None,
 _BEFORE_POSED = ("ingest", "poses")
 
 
-def _load_scene(ws: Workspace, stage: str):
+def scene_for(ws: Workspace, stage: str):
+    """The scene manifest stage `stage` reads (None before ingest has run)."""
     if not ws.exists(ws.SCENE):
         return None
     scene = ws.scene()
@@ -86,7 +87,7 @@ def status(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfi
     selected_names = {s.name for s in (selected if selected is not None else stages)}
     plans, upstream = [], None
     for s in stages:
-        ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws, s.name))
+        ctx = StageContext(ws, s.name, configs[s.name], scene_for(ws, s.name))
         plan = plan_stage(s, ctx, hashes, force and s.name in selected_names, upstream)
         if plan.state == "will run" and s.name not in selected_names:
             plan.reasons = ["not selected (--from/--until)"] + plan.reasons
@@ -195,7 +196,7 @@ def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
     results: list[StageResult] = []
     try:
         for s in selected:
-            ctx = StageContext(ws, s.name, configs[s.name], _load_scene(ws, s.name), progress=progress)
+            ctx = StageContext(ws, s.name, configs[s.name], scene_for(ws, s.name), progress=progress)
             plan = plan_stage(s, ctx, hashes, force, None)
             if plan.state == "blocked":
                 log.warning("stage %-13s blocked: %s", s.name, plan.summary())

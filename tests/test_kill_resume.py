@@ -195,7 +195,7 @@ def _check_killed(ws, ref, stage, dirs):
     """After the kill: the stage has no record; every other record's outputs match their sha256;
     every file under a real name in the stage's folders is complete (equal to the reference's, or
     loadable); the kill landed mid-write (a temporary exists); and the plan reruns the stage."""
-    from ibr_pipeline.pipeline import _load_scene, load_configs
+    from ibr_pipeline.pipeline import scene_for, load_configs
     from ibr_pipeline.runner import HashCache, StageContext, plan_stage
     from ibr_pipeline.stages import STAGES, stage_by_name
     from ibr_pipeline.workspace import Workspace, file_sha256
@@ -215,7 +215,7 @@ def _check_killed(ws, ref, stage, dirs):
             else:
                 _readable(p)
     w = Workspace(ws)   # what `ibr run --from STAGE` plans now
-    ctx = StageContext(w, stage, load_configs(STAGES, w, {})[stage], _load_scene(w))
+    ctx = StageContext(w, stage, load_configs(STAGES, w, {})[stage], scene_for(w, stage))
     plan = plan_stage(stage_by_name(stage), ctx, HashCache(w.hash_cache_path), False, None)
     assert plan.state == "will run" and plan.reasons == ["never run"], plan.reasons
 

@@ -77,9 +77,9 @@ def test_distorted_sfm_lens_is_undistorted_for_every_later_stage(distorted, tmp_
     assert "SIMPLE_RADIAL" not in (ws / "sfm" / "cameras.txt").read_text()
     # the stages after poses read the undistorted files: they are in view_depth's inputs
     assert main(["status", str(ws)]) == 0
-    from ibr_pipeline.pipeline import _load_scene
-    assert _load_scene(w, "view_depth").view(sorted(cams)[0]).image.startswith("sfm/images/")
-    assert _load_scene(w, "poses").view(sorted(cams)[0]).image.startswith("input/")
+    from ibr_pipeline.pipeline import scene_for
+    assert scene_for(w, "view_depth").view(sorted(cams)[0]).image.startswith("sfm/images/")
+    assert scene_for(w, "poses").view(sorted(cams)[0]).image.startswith("input/")
     # back to a pinhole SfM: the overlay goes, later stages read the input's images again
     assert main(base + ["--set", "poses.camera_model=SIMPLE_PINHOLE"]) == 0
     assert not (ws / L.POSED_VIEWS).exists()
