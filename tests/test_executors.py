@@ -133,3 +133,25 @@ def test_runner_keeps_views_finished_before_the_workers_left(tmp_path):
     ran_after = (ws_root / "ranlog.txt").read_text().split()[len(ran_before):]
     assert not set(ran_after) & done, "views recorded before the error were redone"
     assert len(_outputs(ws_root)) == 10
+
+
+def _pool_threads():
+    import os
+
+    from threadpoolctl import threadpool_info
+    blas = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+    return os.environ.get("OPENBLAS_NUM_THREADS"), blas
+
+
+def test_pool_workers_are_pinned_to_their_share_of_the_cores():
+    """Each worker of a local pool gets cores // jobs BLAS threads (numpy's OpenBLAS included),
+    so two workers on two cores do not spin against each other (issue #28)."""
+    import numpy  # noqa: F401  (loads OpenBLAS, as every worker does)
+
+    from ibr_pipeline.executors import worker_threads
+    n = worker_threads(2)
+    with LocalExecutor(2) as ex:
+        got = [r for _, r, e in ex.map_unordered(_pool_threads, [(), ()]) if e is None]
+    assert len(got) == 2
+    for env, blas in got:
+        assert env == str(n) and blas and all(b == n for b in blas)
