@@ -72,12 +72,18 @@ def select_stages(stages: Sequence[Stage], from_stage: str | None = None,
 _BEFORE_POSED = ("ingest", "poses")
 
 
-def scene_for(ws: Workspace, stage: str):
-    """The scene manifest stage `stage` reads (None before ingest has run)."""
-    if not ws.exists(ws.SCENE):
-        return None
-    scene = ws.scene()
-    return scene if stage in _BEFORE_POSED else L.posed_scene(ws, scene)
+def scene_for(ws: Workspace, stage: str, scenes: tuple | None = None):
+    """The scene manifest stage `stage` reads (None before ingest has run). `scenes`: the
+    (as ingested, as posed) pair already read, when nothing ran in between."""
+    if scenes is None:
+        if not ws.exists(ws.SCENE):
+            return None
+        base = ws.scene()
+        scenes = (base, None)
+    base, posed = scenes
+    if base is None or stage in _BEFORE_POSED:
+        return base
+    return posed if posed is not None else L.posed_scene(ws, base)
 
 
 def status(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
@@ -86,8 +92,10 @@ def status(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfi
     hashes = HashCache(ws.hash_cache_path)
     selected_names = {s.name for s in (selected if selected is not None else stages)}
     plans, upstream = [], None
+    base = ws.scene() if ws.exists(ws.SCENE) else None  # status runs nothing: read both once
+    scenes = (base, None if base is None else L.posed_scene(ws, base))
     for s in stages:
-        ctx = StageContext(ws, s.name, configs[s.name], scene_for(ws, s.name))
+        ctx = StageContext(ws, s.name, configs[s.name], scene_for(ws, s.name, scenes))
         plan = plan_stage(s, ctx, hashes, force and s.name in selected_names, upstream)
         if plan.state == "will run" and s.name not in selected_names:
             plan.reasons = ["not selected (--from/--until)"] + plan.reasons

@@ -144,7 +144,7 @@ def _load_beta(path: Path, shape: tuple[int, int]):
     return np.clip(beta.astype(np.float32), 0.0, 1.0)
 
 
-def _view_nodes(ws, name: str, cam, image: Path, layered: bool) -> list:
+def _view_nodes(ws, name: str, cam, image: Path, layered: bool, enc: str) -> list:
     """[(node name, Trimesh)] of one view's GLB (module docstring)."""
     from .. import layout as L
     from ..errors import InputError
@@ -152,7 +152,6 @@ def _view_nodes(ws, name: str, cam, image: Path, layered: bool) -> list:
     from ..io.images import linear_to_srgb, read_image
     from ..io.mesh import read_ply
 
-    enc = ws.scene().image_encoding
 
     def node(node_name, mesh_file, img, texture, layer_of):
         m = read_ply(ws.path(L.view_file(name, mesh_file)))
@@ -246,9 +245,10 @@ def main(args: argparse.Namespace) -> int:
             if not any(ws.exists(L.view_file(n, L.LAYERS)) for n in cams):
                 log.info("export: the reflection stage has not run: each GLB holds the 'view' "
                          "node only (run `ibr reflection %s` for the layers)", ws.root)
+            enc = ws.scene().image_encoding
             for n in tqdm(list(cams), desc="export", unit="view", disable=args.no_progress):
                 write_glb(stage / "views" / glb_names[n], _view_nodes(ws, n, cams[n], images[n],
-                                                                     layered[n]))
+                                                                     layered[n], enc))
 
     print(f"export: {out}")
     if "colmap" in what:

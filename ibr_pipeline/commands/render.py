@@ -111,12 +111,12 @@ def main(args: argparse.Namespace) -> int:
 
     log = logging.getLogger("ibr_pipeline.render")
     ws = Workspace(args.workspace)
-    enc = ws.scene().image_encoding  # frames are stored like the photographs
     if args.frames < 0 or not (0 < args.fps <= 240):
         raise InputError("--frames must be >= 0 and --fps in (0, 240]")
     from ..config import build_config
     cfg = build_config(rv.RenderViewsConfig, "render_views", ws.config().get("render_views", {}))
     ctx = StageContext(ws, "render_views", cfg, L.posed_scene(ws))
+    enc = ctx.scene.image_encoding  # frames are stored like the photographs
     if args.cameras is not None:
         cams, sequential = read_camera_file(args.cameras)
         if args.frame == "input":

@@ -250,7 +250,10 @@ def input_files(root: Path) -> list[Path]:
             found += [p for p in it if p.is_file() and keep(p) and not _hidden(p, root)]
     if layout.name.startswith("colmap") or layout.name == "nerfstudio-colmap":
         found += model_files(layout.path)
-    elif layout.name in ("nerfstudio", "llff", "cameras.json"):
+    elif layout.name == "nerfstudio":  # frames may name any folder (images_4/, ...): ask the reader
+        from .nerfstudio import read_transforms
+        found += read_transforms(layout.path, root).files
+    elif layout.name in ("llff", "cameras.json"):
         found.append(layout.path)
         if layout.name == "llff" and (root / "hwf_cxcy.npy").is_file():
             found.append(root / "hwf_cxcy.npy")

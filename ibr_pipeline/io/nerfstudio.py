@@ -67,6 +67,15 @@ def number(value: Any, what: str) -> float:
     return out
 
 
+def _fields(obj: Any, keys: tuple[str, ...], where: str) -> None:
+    """InputError unless `obj` is a JSON object holding every one of `keys`."""
+    if not isinstance(obj, dict):
+        raise InputError(f"{where}: expected an object with {' and '.join(keys)}")
+    for key in keys:
+        if key not in obj:
+            raise InputError(f"{where}: missing field {key!r}")
+
+
 def _size(value: Any, what: str) -> int:
     v = number(value, what)
     if v <= 0 or v != round(v):
@@ -193,11 +202,7 @@ def read_transforms(path: Path, root: Path, images: bool = True) -> Capture:
     masks = 0
     for i, fr in enumerate(frames_in):
         where = f"{path}: frame {i}"
-        if not isinstance(fr, dict):
-            raise InputError(f"{where}: expected an object with file_path and transform_matrix")
-        for key in ("file_path", "transform_matrix"):
-            if key not in fr:
-                raise InputError(f"{where}: missing field {key!r}")
+        _fields(fr, ("file_path", "transform_matrix"), where)
         intr = {}
         for key in _INTRINSICS:
             v = field(fr, key)
@@ -301,11 +306,7 @@ def read_camera_path(path: Path) -> list[Camera]:
     out = []
     for i, kf in enumerate(d["camera_path"]):
         where = f"{path}: camera_path[{i}]"
-        if not isinstance(kf, dict):
-            raise InputError(f"{where}: expected an object with camera_to_world and fov")
-        for key in ("camera_to_world", "fov"):
-            if key not in kf:
-                raise InputError(f"{where}: missing field {key!r}")
+        _fields(kf, ("camera_to_world", "fov"), where)
         fov = number(kf["fov"], f"{where}: fov")
         if not 0 < fov < 180:
             raise InputError(f"{where}: fov must be in (0, 180) degrees, got {fov}")

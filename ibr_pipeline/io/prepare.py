@@ -73,17 +73,16 @@ def _read_rgb8(path: Path, rotate: bool) -> np.ndarray:
     return np.asarray(im.convert("RGB"))
 
 
-def prepare(frame: Frame, p: Plan, image: np.ndarray | None, out_image: Path | None,
-            out_depth: Path | None) -> Camera | None:
+def prepare(frame: Frame, p: Plan, out_image: Path | None, out_depth: Path | None) -> Camera | None:
     """Write what `p` says into `out_image` / `out_depth`; return the frame's pinhole camera
-    (None without a pose). `image`: the decoded frame when the caller has it (video), else read."""
+    (None without a pose)."""
     from .images import read_depth_png, write_depth_png, write_image
     from .undistort import resample, scaled_lens, undistorted_lens
 
     lens = frame.lens
     out_lens = None if lens is None else (undistorted_lens(lens) if p.undistort else lens)
-    if p.image or image is not None:
-        img = image if image is not None else _read_rgb8(frame.image, p.rotate)
+    if p.image:
+        img = _read_rgb8(frame.image, p.rotate)
         if p.undistort:
             if img.shape[:2] != (lens.height, lens.width):
                 raise InputError(f"{frame.image}: image is {img.shape[1]}x{img.shape[0]} but its "

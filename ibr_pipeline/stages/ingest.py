@@ -121,7 +121,7 @@ def _prepare(ctx, cap, where) -> tuple[list[View], dict]:
         for path in (out_img, out_depth):
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)
-        camera = prepare(f, p, None, out_img if p.image else None, out_depth if p.depth else None)
+        camera = prepare(f, p, out_img if p.image else None, out_depth if p.depth else None)
         done["undistorted"] += p.undistort
         done["rotated"] += p.rotate
         done["depth_converted"] += p.depth

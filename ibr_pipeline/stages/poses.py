@@ -271,7 +271,7 @@ def _undistort(ctx, rec, cams, staging: Path):
         paths = [staging / Path(k).relative_to("sfm") for k in (img_key, depth_key) if k]
         for q in paths:
             q.parent.mkdir(parents=True, exist_ok=True)
-        out[n] = prepare(f, Plan(False, True, bool(v.depth)), None, paths[0],
+        out[n] = prepare(f, Plan(False, True, bool(v.depth)), paths[0],
                          paths[1] if depth_key else None)
         views[n] = {"image": img_key, "depth": depth_key}
     lens = next(iter(lenses.values()))

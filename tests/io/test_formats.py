@@ -77,23 +77,18 @@ def test_colmap_layouts(sample, tmp_path, layout, text):
     assert scene.sparse == f"input/{layout}"
 
 
-def test_nerfstudio(sample, tmp_path):
+@pytest.mark.parametrize("fmt", ["nerfstudio", "llff"])
+def test_pose_files(sample, tmp_path, fmt):
+    from ibr_pipeline.io.llff import write_poses_bounds
     from ibr_pipeline.io.nerfstudio import write_transforms
     root = tmp_path / "in"
     _copy_images(sample, root)
-    write_transforms(sample, root / "transforms.json")
+    if fmt == "nerfstudio":
+        write_transforms(sample, root / "transforms.json")
+    else:
+        write_poses_bounds(sample, root / "poses_bounds.npy")
     scene = ingest(root, tmp_path / "ws")
-    assert scene.source == "nerfstudio"
-    assert_same_poses(scene, sample)
-
-
-def test_llff(sample, tmp_path):
-    from ibr_pipeline.io.llff import write_poses_bounds
-    root = tmp_path / "in"
-    _copy_images(sample, root)
-    write_poses_bounds(sample, root / "poses_bounds.npy")
-    scene = ingest(root, tmp_path / "ws")
-    assert scene.source == "llff"
+    assert scene.source == fmt
     assert_same_poses(scene, sample)
 
 
@@ -288,3 +283,17 @@ def test_symlinked_images_folder(sample, tmp_path):
     scene = ingest(root, tmp_path / "ws")
     assert_same_poses(scene, sample)
     assert all(v.image == f"input/images/{v.name}" for v in scene.views)
+
+
+def test_nerfstudio_frames_outside_images_are_fingerprinted(sample, tmp_path):
+    """nerfstudio frames often live in images_4/ or elsewhere: ingest's inputs are the files the
+    transforms.json names, so changing one of them makes ingest rerun."""
+    from ibr_pipeline.io.inputs import input_files
+    from ibr_pipeline.io.nerfstudio import write_transforms
+    root = tmp_path / "in"
+    (root / "images_4").mkdir(parents=True)
+    for n in sample:
+        shutil.copy(SAMPLE / "images" / n, root / "images_4" / n)
+    write_transforms(sample, root / "transforms.json", image_prefix="images_4/")
+    files = set(input_files(root))
+    assert {root / "images_4" / n for n in sample} | {root / "transforms.json"} <= files
