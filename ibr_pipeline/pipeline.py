@@ -114,12 +114,20 @@ class StageResult:
     views_failed: int = 0
     views_total: int = 0
     seconds: float = 0.0
+    cpu_seconds: float = 0.0  # every process of the stage (workers included), see _cpu_now
     failures: list[tuple[str, str]] = field(default_factory=list)  # (view, one-line error)
+
+
+def _cpu_now() -> float:
+    """CPU seconds of this process and of its finished children (pools a whole stage starts)."""
+    import resource
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
 
 
 def _run_whole(stage: Stage, ctx: StageContext, plan: StagePlan) -> StageResult:
     ws = ctx.ws
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu_now()
     ctx = dataclasses.replace(ctx, fingerprint=fingerprint(stage, ctx.config, plan.input_hashes))
     try:
         stage.run(ctx)
@@ -132,10 +140,11 @@ def _run_whole(stage: Stage, ctx: StageContext, plan: StagePlan) -> StageResult:
         write_record(ws.state_file(stage.name),
                      make_record(stage, ctx, "failed", plan.input_hashes, seconds=dt, error=error_line(e)))
         return StageResult(stage.name, "failed", seconds=dt, failures=[("", error_line(e))])
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, _cpu_now() - c0
     write_record(ws.state_file(stage.name),
-                 make_record(stage, ctx, "ok", plan.input_hashes, outputs=outputs, seconds=dt))
-    return StageResult(stage.name, "ran", seconds=dt)
+                 make_record(stage, ctx, "ok", plan.input_hashes, outputs=outputs, seconds=dt,
+                             cpu_seconds=cpu))
+    return StageResult(stage.name, "ran", seconds=dt, cpu_seconds=cpu)
 
 
 def _run_views(stage: Stage, ctx: StageContext, plan: StagePlan, executor: Executor,
@@ -153,8 +162,9 @@ def _run_views(stage: Stage, ctx: StageContext, plan: StagePlan, executor: Execu
             view = todo[i]
             if exc is None:
                 rec = make_record(stage, ctx, "ok", plan.input_hashes[view], view,
-                                  out["outputs"], out["seconds"])
+                                  out["outputs"], out["seconds"], cpu_seconds=out.get("cpu_seconds"))
                 res.views_run += 1
+                res.cpu_seconds += out.get("cpu_seconds") or 0.0
             elif isinstance(exc, InputError):
                 # bad input or an unwritable workspace: the user must act, so stop here (exit 2);
                 # the views finished so far keep their records, this one is left as it was
@@ -248,7 +258,7 @@ def _log_run(ws: Workspace, results: Sequence[StageResult], configs: dict[str, S
     entry = {"finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "command": list(command),
              "config": {name: cfg.to_dict() for name, cfg in configs.items()},
              "stages": [{"stage": r.name, "result": r.result, "seconds": round(r.seconds, 3),
-                         "views_run": r.views_run, "views_failed": r.views_failed,
+                         "cpu_seconds": round(r.cpu_seconds, 3), "views_run": r.views_run, "views_failed": r.views_failed,
                          "views_total": r.views_total} for r in results]}
     path = ws.root / ".ibr" / "runs.jsonl"
     try:
@@ -260,12 +270,14 @@ def _log_run(ws: Workspace, results: Sequence[StageResult], configs: dict[str, S
 
 
 def timing_table(results: Sequence[StageResult]) -> str:
-    rows = [("stage", "result", "views run", "failed", "seconds")]
+    rows = [("stage", "result", "views run", "failed", "seconds", "cpu s")]
     for r in results:
         views = f"{r.views_run}/{r.views_total}" if r.views_total else "-"
-        rows.append((r.name, r.result, views, str(r.views_failed or "-"), f"{r.seconds:.2f}"))
-    rows.append(("total", "", "", "", f"{sum(r.seconds for r in results):.2f}"))
-    widths = [max(len(row[i]) for row in rows) for i in range(5)]
+        rows.append((r.name, r.result, views, str(r.views_failed or "-"), f"{r.seconds:.2f}",
+                     f"{r.cpu_seconds:.2f}"))
+    rows.append(("total", "", "", "", f"{sum(r.seconds for r in results):.2f}",
+                 f"{sum(r.cpu_seconds for r in results):.2f}"))
+    widths = [max(len(row[i]) for row in rows) for i in range(6)]
     lines = ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(lines)
