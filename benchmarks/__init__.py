@@ -37,6 +37,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("real", "benchmarks.real",
               "a real capture, LLFF protocol: held-out PSNR/SSIM/FLIP vs naive warp, nearest image, "
               "published figures; holes, coverage, seconds per stage"),
+    Benchmark("speed", "benchmarks.speed",
+              "per-stage CPU s per view and per megapixel, frame time, against Xu et al.'s "
+              "figures and other code trees (variants) in the same run"),
     Benchmark("synth", "benchmarks.synth",
               "synthetic scene generation: median seconds per scene"),
 )
