@@ -62,6 +62,18 @@ def limit_threads(n: int) -> None:
     cv2.setNumThreads(n)
 
 
+def block_order(n: int, jobs: int) -> list[int]:
+    """Task indices 0..n-1 cut into `jobs` contiguous blocks and dealt one from each block in
+    turn (0, b, 2b, 1, b+1, ...): a pool hands tasks out in that order, so each worker mostly gets
+    consecutive views, and a stage whose view reads its neighbours (the reflection stage's
+    per-worker cache of mirror-world footprints) builds each of them in one worker, not in all."""
+    if n <= 0:
+        return []
+    size = -(-n // max(1, jobs))
+    blocks = [list(range(k, min(n, k + size))) for k in range(0, n, size)]
+    return [b[j] for j in range(size) for b in blocks if j < len(b)]
+
+
 class LocalExecutor(Executor):
     """`jobs` worker processes (spawned: safe with open3d/torch threads; each pinned to its share
     of the cores, `limit_threads`); jobs=1 runs in-process."""
@@ -85,7 +97,8 @@ class LocalExecutor(Executor):
             self._pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
                                              initializer=limit_threads,
                                              initargs=(worker_threads(self.jobs),))
-        futures = {self._pool.submit(fn, *args): i for i, args in enumerate(argsets)}
+        futures = {self._pool.submit(fn, *argsets[i]): i
+                   for i in block_order(len(argsets), self.jobs)}
         try:
             for fut in as_completed(futures):
                 exc = fut.exception()

@@ -1,4 +1,6 @@
 """The same per-view tasks give byte-identical outputs in-process, on a process pool and on Dask."""
+import os
+
 import pytest
 from toy_stages import STAGES, make_toy_workspace
 
@@ -155,3 +157,21 @@ def test_pool_workers_are_pinned_to_their_share_of_the_cores():
     assert len(got) == 2
     for env, blas in got:
         assert env == str(n) and blas and all(b == n for b in blas)
+
+
+def _pid(_i):
+    return os.getpid()
+
+
+def test_pool_hands_each_worker_consecutive_tasks():
+    """block_order deals contiguous blocks in turn, so a worker's tasks are mostly neighbours
+    (the reflection stage's per-worker footprint cache relies on it); every task runs once."""
+    from ibr_pipeline.executors import block_order
+    for n, jobs in ((10, 2), (7, 3), (1, 2), (0, 2), (3, 8)):
+        order = block_order(n, jobs)
+        assert sorted(order) == list(range(n))
+    assert block_order(10, 2)[:4] == [0, 5, 1, 6]
+    with LocalExecutor(2) as ex:
+        got = {i: (pid, e) for i, pid, e in ex.map_unordered(_pid, [(i,) for i in range(12)])}
+    assert sorted(got) == list(range(12))
+    assert all(e is None and isinstance(pid, int) for pid, e in got.values())
