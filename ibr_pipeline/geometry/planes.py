@@ -110,21 +110,56 @@ def ransac_planes(points: np.ndarray, *, distance: float = 0.008, min_points: in
     return out
 
 
-def ray_plane_hits(camera: Camera, plane) -> tuple[np.ndarray, np.ndarray]:
+def ray_plane_hits(camera: Camera, plane, uv: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """For every pixel: world point where its ray meets the plane (H, W, 3) and that point's
-    z-depth (H, W) in the camera (<= 0 or inf where the plane is behind / parallel)."""
+    z-depth (H, W) in the camera (<= 0 or inf where the plane is behind / parallel). With `uv`
+    (N, 2) pixel positions: the same for those pixels only, (N, 3) and (N,)."""
     p = _plane(plane)
-    uv = camera.pixel_grid().reshape(-1, 2)
-    d_cam = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(camera.K).T  # z = 1 rays
-    d_world = d_cam @ camera.R
+    flat = camera.pixel_grid().reshape(-1, 2) if uv is None else np.asarray(uv, np.float64)
+    if flat.ndim != 2 or flat.shape[1] != 2:
+        raise ValueError(f"uv must be (N, 2), got {flat.shape}")
+    # z = 1 rays R^T K^-1 [u, v, 1] as one (3, 3) map, applied elementwise: a (N, 3) @ (3, 3)
+    # product goes through BLAS, slow on this shape (raycast.camera_rays)
+    M = camera.R.T @ np.linalg.inv(camera.K)
+    d_world = flat[:, :1] * M[:, 0] + flat[:, 1:] * M[:, 1] + M[:, 2]
     c = camera.center
-    denom = d_world @ p[:3]
+    denom = d_world[:, 0] * p[0] + d_world[:, 1] * p[1] + d_world[:, 2] * p[2]
     with np.errstate(divide="ignore", invalid="ignore"):
         z = -(p[:3] @ c + p[3]) / denom  # ray parameter = z-depth since d_cam has z = 1
     z = np.where(np.isfinite(z), z, np.inf)
     X = c + d_world * z[:, None]
+    if uv is not None:
+        return X, z
     H, W = camera.height, camera.width
     return X.reshape(H, W, 3), z.reshape(H, W)
+
+
+def polygon_window(camera: Camera, polygon: np.ndarray, near: float = 1e-3) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1): the pixels whose rays can meet a convex planar polygon at a z-depth
+    above `near`: the bounding box of its projection after clipping it to z >= near, widened by
+    a pixel and clipped to the image; (0, 0, 0, 0) when there are none. A point of the polygon
+    is a convex combination of its vertices, so the clipped polygon holds every such hit."""
+    poly = np.asarray(polygon, np.float64)
+    if poly.ndim != 2 or poly.shape[1] != 3 or len(poly) < 3:
+        raise ValueError(f"polygon must be (K>=3, 3), got {poly.shape}")
+    c = poly @ camera.R.T + camera.t
+    kept = []  # Sutherland-Hodgman against the plane z = near
+    for a, b in zip(c, np.roll(c, -1, axis=0)):
+        if a[2] >= near:
+            kept.append(a)
+        if (a[2] >= near) != (b[2] >= near):
+            kept.append(a + (near - a[2]) / (b[2] - a[2]) * (b - a))
+    if not kept:
+        return (0, 0, 0, 0)
+    uv = np.asarray(kept) @ camera.K.T
+    uv = uv[:, :2] / uv[:, 2:3]
+    x0, y0 = np.floor(uv.min(0) - 1).astype(np.int64)
+    x1, y1 = np.ceil(uv.max(0) + 2).astype(np.int64)
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, camera.width), min(y1, camera.height)
+    if x1 <= x0 or y1 <= y0:
+        return (0, 0, 0, 0)
+    return int(y0), int(y1), int(x0), int(x1)
 
 
 def polygon_contains(plane, polygon: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -151,17 +186,22 @@ def reflector_mask(camera: Camera, plane, polygon: np.ndarray | None, depth: np.
     depth = np.asarray(depth)
     if depth.shape != (camera.height, camera.width):
         raise ValueError(f"depth must be ({camera.height}, {camera.width}), got {depth.shape}")
-    X, z = ray_plane_hits(camera, plane)
     p = _plane(plane)
-    facing = (camera.center @ p[:3] + p[3]) > 0  # camera on the reflecting side (n points to it)
-    ok = np.isfinite(z) & (z > 1e-3) & (depth > 0) & (np.abs(depth - z) < rel_tol * z)
-    if not facing:
-        return np.zeros_like(ok)
-    if polygon is not None and ok.any():
-        inside = np.zeros(ok.size, bool)
-        flat = ok.reshape(-1)
-        inside[flat] = polygon_contains(plane, polygon, X.reshape(-1, 3)[flat])
-        ok = inside.reshape(ok.shape)
+    if not (camera.center @ p[:3] + p[3]) > 0:  # camera not on the reflecting side (n to it)
+        return np.zeros(depth.shape, bool)
+    y0, y1, x0, x1 = 0, camera.height, 0, camera.width
+    if polygon is not None:  # only the pixels the polygon can cover (exactly the same mask)
+        y0, y1, x0, x1 = polygon_window(camera, polygon)
+    ok = np.zeros(depth.shape, bool)
+    if y1 <= y0 or x1 <= x0:
+        return ok
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    X, z = ray_plane_hits(camera, p, np.c_[xs.ravel(), ys.ravel()].astype(np.float64))
+    d = depth[y0:y1, x0:x1].reshape(-1)
+    sel = np.isfinite(z) & (z > 1e-3) & (d > 0) & (np.abs(d - z) < rel_tol * z)
+    if polygon is not None and sel.any():
+        sel[sel] = polygon_contains(plane, polygon, X[sel])
+    ok[y0:y1, x0:x1] = sel.reshape(y1 - y0, x1 - x0)
     return ok
 
 
@@ -180,14 +220,19 @@ def mirror_points(camera: Camera, plane, mask: np.ndarray, scene,
     if mask.shape != (H, W):
         raise ValueError(f"mask must be ({H}, {W}), got {mask.shape}")
     p = _plane(plane)
-    X, z = ray_plane_hits(camera, p)
     pts = np.full((H, W, 3), np.nan)
     zd = np.zeros((H, W))
-    sel = mask & np.isfinite(z) & (z > 0)
+    ys, xs = np.nonzero(mask)  # the plane hits of the mask's pixels only
+    Xm_, zm_ = ray_plane_hits(camera, p, np.c_[xs, ys].astype(np.float64))
+    ok = np.isfinite(zm_) & (zm_ > 0)
+    sel = np.zeros((H, W), bool)
+    sel[ys[ok], xs[ok]] = True
     if not sel.any():
         return pts, zd
     c = camera.center
-    P = X[sel]
+    P = Xm_[ok]
+    z = np.zeros((H, W))
+    z[ys[ok], xs[ok]] = zm_[ok]
     r = P - c
     rng0 = np.linalg.norm(r, axis=1)
     r /= rng0[:, None]

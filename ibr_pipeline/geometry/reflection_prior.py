@@ -15,20 +15,63 @@ from .decompose_terms import sample_bilinear, depth_consistent, project
 from .planes import mirror_matrix
 
 
+SAMPLE = 2000  # reflected points that rank the views (deterministic stride)
+
+
+def reflected_points(X1: np.ndarray, plane) -> tuple[np.ndarray, np.ndarray]:
+    """The real points Xr = mirror(X1) (N, 3) of the finite mirror-world points of X1 (..., 3),
+    and where those are in X1's flattened order (N,) indices."""
+    flat = np.asarray(X1, np.float64).reshape(-1, 3)
+    idx = np.flatnonzero(np.all(np.isfinite(flat), axis=1))
+    M = mirror_matrix(plane)
+    return flat[idx] @ M[:3, :3].T + M[:3, 3], idx
+
+
+def sample_points(points: np.ndarray, n: int = SAMPLE) -> np.ndarray:
+    """At most n of the (N, 3) points, evenly strided (deterministic)."""
+    step = max(1, -(-len(points) // n))
+    return points[::step]
+
+
+def views_in_frustum(points: np.ndarray, cameras) -> list[int]:
+    """Indices of the cameras in front of which at least one of the (N, 3) points projects
+    inside the image: the only views that can see them (the colour prior's candidates)."""
+    out = []
+    for i, cam in enumerate(cameras):
+        pos, z = project(cam, points)
+        inside = (z > 0) & (pos[:, 0] > -0.5) & (pos[:, 1] > -0.5) \
+            & (pos[:, 0] < cam.width - 0.5) & (pos[:, 1] < cam.height - 0.5)
+        if inside.any():
+            out.append(i)
+    return out
+
+
 def reflected_scene_colour(X1: np.ndarray, plane, views, tol: float = 0.03,
-                           min_views: int = 1) -> np.ndarray:
-    """X1: (..., 3) mirror-world points (NaN = none); views: iterable of (camera, image (H, W, 3),
+                           min_views: int = 1, max_views: int | None = None) -> np.ndarray:
+    """X1: (..., 3) mirror-world points (NaN = none); views: sequence of (camera, image (H, W, 3),
     depth (H, W), exclude (H, W) bool = pixels on reflectors). Returns (..., 3) median colour of
-    the reflected points over the views that see them directly, NaN where fewer than min_views."""
+    the reflected points over the views that see them directly, NaN where fewer than min_views.
+
+    `max_views`: the median is taken over at most this many views, those that see the largest
+    share of a sample of the points (ties in the given order); with no more views than that
+    seeing any of the sample it is the median over all of them. This keeps a view's cost
+    independent of the number of captured views."""
     X1 = np.asarray(X1, np.float64)
     shp = X1.shape[:-1]
-    flat = X1.reshape(-1, 3)
-    ok_pts = np.all(np.isfinite(flat), axis=1)
-    out = np.full((len(flat), 3), np.nan)
-    if not ok_pts.any():
+    out = np.full((int(np.prod(shp)), 3), np.nan)
+    Xr, idx = reflected_points(X1, plane)
+    if not len(Xr):
         return out.reshape(shp + (3,))
-    M = mirror_matrix(plane)
-    Xr = flat[ok_pts] @ M[:3, :3].T + M[:3, 3]
+    views = list(views)
+    if max_views is not None and len(views) > max_views:
+        S = sample_points(Xr)
+        seen = []
+        for cam, _img, depth, exclude in views:
+            pos, z = project(cam, S)
+            seen.append(depth_consistent(np.where(exclude, 0.0, depth), pos, z, tol).mean())
+        best = sorted(range(len(views)), key=lambda i: -seen[i])[:max_views]
+        keep = [i for i in best if seen[i] > 0] or best
+        views = [views[i] for i in sorted(keep)]
     cols = []
     for cam, img, depth, exclude in views:
         pos, z = project(cam, Xr)
@@ -46,5 +89,5 @@ def reflected_scene_colour(X1: np.ndarray, plane, views, tol: float = 0.03,
                 warnings.simplefilter("ignore", RuntimeWarning)
                 med = np.nanmedian(st, axis=0)
         med[n < min_views] = np.nan
-        out[ok_pts] = med
+        out[idx] = med
     return out.reshape(shp + (3,))

@@ -53,6 +53,9 @@ class ReflectionConfig(StageConfig):
                            "fused G) are skipped (m)", min=0.0, max=1.0)
     prior_tol: float = param(0.03, "depth tolerance (x depth) of the prior's visibility test",
                              min=1e-4, max=1.0)
+    prior_views: int = param(16, "the reflected-scene colour prior is the median over at most "
+                             "this many views: those that see most of the reflected points",
+                             min=1, max=10000)
     mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
     m1_simplify: bool = param(True, "quadric-simplify M1 like the per-view surface mesh (§4.2.3, "
                               "view_mesh's adaptive target): flat reflected walls need few "
@@ -143,20 +146,25 @@ class Loader:
         return self._masks[key]
 
     def prior(self, name, refl, reflectors):
-        """beta * reflected-scene colour (H, W, 3), NaN where unobserved (reflection_prior.py)."""
+        """beta * reflected-scene colour (H, W, 3), NaN where unobserved (reflection_prior.py),
+        from the views whose frustum holds some of the reflected points (the others cannot see
+        them: their images and masks are not needed), at most `prior_views` of them."""
         import numpy as np
 
-        from .reflection_prior import reflected_scene_colour
+        from .reflection_prior import (reflected_points, reflected_scene_colour, sample_points,
+                                       views_in_frustum)
         g = self.geom(name, refl)
+        X1 = np.where(g.mask[..., None], g.X1, np.nan)
+        Xr, _ = reflected_points(X1, refl["plane"])
         views = []
-        for o in self.names:
-            _, _, wc, wi, wd = self.raw(o)
+        for i in views_in_frustum(sample_points(Xr), [self.camera(o) for o in self.names]):
+            _, _, wc, wi, wd = self.raw(self.names[i])
             ex = np.zeros(wd.shape, bool)
             for r in reflectors:
-                ex |= self.mask(o, r)
+                ex |= self.mask(self.names[i], r)
             views.append((wc, wi, wd, ex))
-        X1 = np.where(g.mask[..., None], g.X1, np.nan)
-        C = reflected_scene_colour(X1, refl["plane"], views, tol=self.cfg.prior_tol)
+        C = reflected_scene_colour(X1, refl["plane"], views, tol=self.cfg.prior_tol,
+                                   max_views=self.cfg.prior_views)
         return float(refl.get("beta") or 1.0) * C
 
     def _mask(self, name, refl):
@@ -327,14 +335,20 @@ def decompose_reflector(loader: Loader, view: str, refl: dict, opts: DecomposeOp
     its report; R (the reflection component), pose, offsets and the ViewGeom unless discarded."""
     import numpy as np
 
-    from .decompose import decompose, select_neighbours
+    from .decompose import by_pose_distance, decompose, select_neighbours
     cfg = loader.cfg
     opts = opts or cfg.decompose
     mirror = refl.get("beta") == 1.0
     beta = float(refl.get("beta") or 1.0)
     ref = loader.geom(view, refl)
-    others = [loader.footprint(o, refl) for o in loader.names if o != view]
-    nbs_sel = select_neighbours(ref, [o for o in others if o.mask.sum() >= cfg.min_mask_pixels], opts)
+
+    def candidates(of, names):  # footprints built lazily, nearest first (select_neighbours)
+        for o in by_pose_distance(loader.cams[of], [n for n in names if n != of], loader.cams):
+            fp = loader.footprint(o, refl)
+            if fp.mask.sum() >= cfg.min_mask_pixels:
+                yield fp
+
+    nbs_sel = select_neighbours(ref, candidates(view, loader.names), opts, presorted=True)
     nbs = [loader.geom(n, refl) for n, _ in nbs_sel]
     info = {"name": refl["name"], "beta": beta, "mirror": mirror, "mask_pixels": int(ref.mask.sum()),
             "neighbours": [{"view": n, "overlap": round(f, 3)} for n, f in nbs_sel]}
@@ -350,9 +364,7 @@ def decompose_reflector(loader: Loader, view: str, refl: dict, opts: DecomposeOp
         loader.first[(view, refl["name"])] = res["R"]
         prev = {}
         for nb in nbs:
-            nn = select_neighbours(nb, [o for o in [loader.footprint(view, refl)] + others
-                                        if o.name != nb.name
-                                        and o.mask.sum() >= cfg.min_mask_pixels], opts)
+            nn = select_neighbours(nb, candidates(nb.name, loader.names), opts, presorted=True)
             nbn = [loader.geom(n, refl) for n, _ in nn]
             key = (nb.name, refl["name"])
             if key in loader.first:  # first pass already computed by this worker
