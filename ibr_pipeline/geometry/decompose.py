@@ -27,7 +27,6 @@ import numpy as np
 from ..config import Options, param
 from ..errors import ConfigError
 from ..scene import Camera
-from .block_pcg import _block_pcg
 from .decompose_terms import (DataTerm, ViewGeom, _nearest, _sample_np, bilinear_matrix,
                               depth_consistent, pose_distance, project, rodrigues,
                               sample_bilinear)
@@ -61,15 +60,21 @@ class DecomposeOptions(Options):
                             "Off by default: it decomposes every neighbour too (~7x the time)")
     outer_iterations: int = param(2, "alternations of image and geometry steps per pass "
                                   "(§4.3.3: usually two)", min=0, max=50)
-    cg_iterations: int = param(150, "preconditioned CG iterations of an image-step solve (the "
-                               "image step is a sparse linear least-squares problem)",
-                               min=1, max=10000)
-    resolve_iterations: int = param(50, "CG iterations of each warm-started active-set re-solve",
+    cg_iterations: int = param(30, "preconditioned CG iterations of an image-step solve (§6.1: "
+                               "30 CG iterations on I before the geometry; the image step is a "
+                               "sparse linear least-squares problem)", min=1, max=10000)
+    resolve_iterations: int = param(15, "CG iterations of each warm-started active-set re-solve",
                                     min=1, max=10000)
     optimise_pose: bool = param(True, "refine the rigid transform (R, T) of M1 (Eq. 7)")
     pose_iterations: int = param(5, "Gauss-Newton iterations per (R, T) step", min=0, max=1000)
     pose_samples: int = param(20000, "data points of the (R, T) steps (deterministic stride)",
                               min=100, max=10**8)
+    kernels: str = param("numba", "numba = the image step's CG in one numba kernel and the "
+                         "ARAP warp's normal equations summed per grid cell; reference = "
+                         "scipy / numpy mat-vecs and the warp's Jacobian formed (the same "
+                         "iterates up to rounding, so it is not part of the stage's "
+                         "fingerprint; `ibr bench speed` times both)",
+                         choices=("numba", "reference"), affects_output=False)
     saturation: float = param(0.98, "highlights: pixels with a channel at or above this are left "
                               "out of E_d", min=0.5, max=1.0)
     visibility_tol: float = param(0.05, "relative depth tolerance of the occlusion tests",
@@ -103,10 +108,16 @@ class DecomposeOptions(Options):
         return max(2, round(self.m1_cell_640 * width / 640))
 
 
-def select_neighbours(ref: ViewGeom, others: list[ViewGeom], opts: DecomposeOptions) -> list[tuple[str, float]]:
+def select_neighbours(ref: ViewGeom, others, opts: DecomposeOptions,
+                      presorted: bool = False) -> list[tuple[str, float]]:
     """N_k (§4.3.1): render M1_k in the other views (project its points), depth overlap test
     (difference < 0.05 min(depth)) inside beta; keep views with > 30 % overlap, sort by pose
-    distance, top six. Returns [(name, overlap fraction)]."""
+    distance, top six. Returns [(name, overlap fraction)].
+
+    `others` (footprints: name, camera, mask, D1) may be any iterable. `presorted`: it comes
+    sorted by pose distance from ref, stably (`by_pose_distance`); the search then stops at the
+    sixth view kept, and a lazy iterable builds only the footprints it reaches: the same answer
+    at a cost that does not grow with the number of views."""
     sel = ref.mask & (ref.D1 > 0)
     n = int(sel.sum())
     if n == 0:
@@ -120,8 +131,15 @@ def select_neighbours(ref: ViewGeom, others: list[ViewGeom], opts: DecomposeOpti
         frac = ok.mean()
         if frac > opts.min_overlap:
             out.append((o.name, float(frac), pose_distance(ref.camera, o.camera)))
+            if presorted and len(out) == opts.max_neighbours:
+                break
     out.sort(key=lambda t: t[2])
     return [(nm, fr) for nm, fr, _ in out[:opts.max_neighbours]]
+
+
+def by_pose_distance(camera, names: list[str], cameras: dict) -> list[str]:
+    """`names` sorted by pose distance from `camera`, ties in their given order."""
+    return sorted(names, key=lambda n: pose_distance(camera, cameras[n]))
 
 
 def surface_flow(ref: ViewGeom, nb: ViewGeom, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -147,7 +165,8 @@ def init_layers(ref: ViewGeom, nbs: list[ViewGeom], opts: DecomposeOptions,
         if opts.use_warp and vis.sum() > 100:
             gx, gy = opts.grid
             offs, energies = solve_grid_warp(I, nb.image, pos, vis, gx=gx, gy=gy, w_r=opts.w_r,
-                                             w_a=opts.w_a, iterations=opts.gn_iterations)
+                                             w_a=opts.w_a, iterations=opts.gn_iterations,
+                                             reference=opts.kernels == "reference")
             info["warp_energy"][nb.name] = energies
             pos = apply_warp(np.nan_to_num(pos, nan=-10), offs, nb.camera.width, nb.camera.height)
         s = _sample_np(nb.image, pos)
@@ -181,9 +200,10 @@ class Problem:
     For fixed geometry every term is quadratic in R (bilinear sampling is linear in the image;
     the edge-aware weights of Eq. 9 are held fixed within one image step), so the image step is
     a sparse linear least-squares problem: its normal equations H x = g (one matrix, three
-    right-hand sides = the colour channels) are solved directly (sparse LU), and the box of
-    Eq. 7 is enforced by an active-set loop. The geometry step (6 parameters) is Gauss-Newton /
-    Levenberg-Marquardt on the data residuals (scipy least_squares)."""
+    right-hand sides = the colour channels) are solved by Jacobi-preconditioned CG
+    (block_pcg.py; Xu et al. §6.1 also use CG, in Ceres), and the box of Eq. 7 is enforced by
+    an active-set loop. The geometry step (6 parameters) is Gauss-Newton / Levenberg-Marquardt
+    on the data residuals (scipy least_squares)."""
 
     def __init__(self, ref: ViewGeom, terms: list[DataTerm], opts: DecomposeOptions):
         import scipy.sparse as sp
@@ -218,7 +238,6 @@ class Problem:
             self.tgts.append(t.target)
         self.A = sp.vstack(As).tocsr() if As else sp.csr_matrix((0, self.P))
         self.r = np.concatenate(rs) if rs else np.zeros((0, 3))
-        self.AtA = (self.A.T @ self.A).tocsr()
         x1 = ref.X1[m & (ref.D1 > 0)]
         self.centre = x1.mean(0) if len(x1) else np.zeros(3)
         self.pose = np.zeros(6)
@@ -317,15 +336,15 @@ class Problem:
                 Sb = bilinear_matrix(self.b_positions(self.pose, i), self.W, self.H)[:, self.flat]
                 As.append(Sb - Sa[:, self.flat])
                 rs.append(t.target - Sa @ self.I.reshape(-1, 3))
-            A = sp.vstack(As).tocsr()
-            AtA, r = (A.T @ A).tocsr(), np.concatenate(rs)
+            A, r = sp.vstack(As).tocsr(), np.concatenate(rs)
         else:
-            A, AtA, r = self.A, self.AtA, self.r
+            A, r = self.A, self.r
+        from .block_pcg import NormalOperator, block_pcg, block_pcg_reference  # numba: lazily
         w0, w1 = self._weights(x0)
         D = self.D
         lam_mv = self.lambda_mv if self.target0 is not None else 0.0
-        Hm = (AtA + o.lambda_s * (D.T @ sp.diags(w0 + w1) @ D)
-              + (2 * o.lambda_p + 2 * lam_mv) * sp.identity(self.P)).tocsc()
+        # H = A^T A + lambda_s D^T diag(w0 + w1) D + diag(2 lambda_p + 2 lambda_mv [+ prior])
+        diag = np.full(self.P, 2 * o.lambda_p + 2 * lam_mv)
         g = A.T @ r + o.lambda_s * (D.T @ (w0[:, None] * (D @ self.Im))) + o.lambda_p * self.Im
         if lam_mv > 0:
             g = g + lam_mv * (self.Im - self._x(self.target0) + self._x(self.target1))
@@ -334,15 +353,19 @@ class Problem:
             # the prior is per channel but its mask is (almost) channel-independent: use the
             # pixels known in all channels so that one matrix serves the three channels
             k = np.all(np.isfinite(self.prior), axis=1)
-            Hm = (Hm + o.lambda_scene * sp.diags(k.astype(np.float64))).tocsc()
+            diag = diag + o.lambda_scene * k
             g = g + o.lambda_scene * np.where(k[:, None], np.nan_to_num(self.prior), 0.0)
-        Hr = Hm.tocsr()
+        Hop = NormalOperator(A, D, o.lambda_s * (w0 + w1), diag)
+        solve = block_pcg if o.kernels == "numba" else block_pcg_reference
         x = np.clip(x0, 0, hi)
         free = np.ones_like(x, bool)
+        cg = 0
         for it in range(3):  # active set: variables at a violated bound are fixed there
             # re-solves start from the previous solution: fewer iterations (speed)
-            x = _block_pcg(Hr, g, x, free,
-                           iterations=o.cg_iterations if it == 0 else o.resolve_iterations)
+            info: dict = {}
+            x = solve(Hop, g, x, free,
+                      iterations=o.cg_iterations if it == 0 else o.resolve_iterations, info=info)
+            cg += info["iterations"]
             viol = ((x < 0) | (x > hi)) & free
             if not viol.any():
                 break
@@ -350,7 +373,8 @@ class Problem:
             x = np.clip(x, 0, hi)
         x = np.clip(x, 0, hi)
         R = self._R(x)
-        history.append({"step": "image", "energy": float(self.energy(R)), "unknowns": int(x.size)})
+        history.append({"step": "image", "energy": float(self.energy(R)), "unknowns": int(x.size),
+                        "cg_iterations": cg})
         return R
 
     # -- geometry step (geometry_step.py) ------------------------------------------------------

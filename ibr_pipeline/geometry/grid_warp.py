@@ -14,6 +14,7 @@ linear function of the offsets. Intensities are linear values in [0, 1].
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 
 def grid_vertices(width: int, height: int, gx: int = 40, gy: int = 30) -> tuple[np.ndarray, float, float]:
@@ -98,14 +99,87 @@ def _sample(img: np.ndarray, p: np.ndarray) -> np.ndarray:
     return out.reshape(-1, img.shape[2] if img.ndim == 3 else 1)[:n]
 
 
+def gauss_newton_terms_reference(w: np.ndarray, idx: np.ndarray, gxs: np.ndarray,
+                                 gys: np.ndarray, res: np.ndarray, L: int):
+    """J^T J (sparse, 2L x 2L) and J^T res (2L,) of Eq. 5's data term, with the Jacobian J formed
+    (rows: pixel x channel; d res / d f_l = grad I_k'(q) theta_l): the reference."""
+    import scipy.sparse as sp
+    N, C = res.shape
+    rows = np.repeat(np.arange(N * C), 8)
+    colx = (2 * idx)[:, None, :].repeat(C, 1)  # (N, C, 4)
+    cols = np.stack([colx, colx + 1], -1).reshape(-1)  # (N, C, 4, 2)
+    vals = (w[:, None, :, None] * np.stack([gxs, gys], -1)[:, :, None, :]).reshape(-1)
+    J = sp.csr_matrix((vals, (rows, cols)), shape=(N * C, 2 * L))
+    return (J.T @ J).tocsr(), J.T @ res.reshape(-1)
+
+
+def gauss_newton_terms(w: np.ndarray, idx: np.ndarray, gxs: np.ndarray, gys: np.ndarray,
+                       res: np.ndarray, L: int):
+    """`gauss_newton_terms_reference` without forming J: a pixel's rows are theta (x) g_c over
+    the channels c, so its share of J^T J is (theta theta^T) (x) (sum_c g_c g_c^T), a 4 x 4 by
+    2 x 2 Kronecker product; a numba kernel sums those 8 x 8 blocks per grid cell (and J^T res),
+    then the cells' blocks are placed in the (2L, 2L) matrix."""
+    import scipy.sparse as sp
+    N, C = res.shape
+    if idx.shape != (N, 4) or w.shape != (N, 4) or gxs.shape != (N, C) or gys.shape != (N, C):
+        raise ValueError(f"need idx, w (N, 4), gxs, gys, res (N, C); got {idx.shape}, "
+                         f"{w.shape}, {gxs.shape}, {gys.shape}, {res.shape}")
+    blocks, Jtr, seen = _gn_cells(np.ascontiguousarray(w, np.float64),
+                                  np.ascontiguousarray(idx, np.int64),
+                                  np.ascontiguousarray(gxs, np.float64),
+                                  np.ascontiguousarray(gys, np.float64),
+                                  np.ascontiguousarray(res, np.float64), L)
+    cells = np.flatnonzero(seen >= 0)
+    vid = idx[seen[cells]]  # (cells, 4): the cell's vertices, from one of its pixels
+    r = (2 * vid[:, :, None] + np.arange(2)).reshape(len(cells), 8)  # unknowns of the block
+    rows = np.repeat(r[:, :, None], 8, axis=2)
+    cols = np.repeat(r[:, None, :], 8, axis=1)
+    JtJ = sp.csr_matrix((blocks[cells].reshape(-1), (rows.reshape(-1), cols.reshape(-1))),
+                        shape=(2 * L, 2 * L))
+    return JtJ, Jtr
+
+
+@njit(cache=True)
+def _gn_cells(w, idx, gxs, gys, res, L):
+    """Per grid cell (keyed by its first vertex): the 8 x 8 block of J^T J, in the unknown order
+    (vertex k of the cell, axis a) -> 2k + a; J^T res (2L,); and one pixel of each cell (-1 none)."""
+    N, C = res.shape
+    blocks = np.zeros((L, 8, 8))
+    Jtr = np.zeros(2 * L)
+    seen = -np.ones(L, np.int64)
+    for n in range(N):
+        g00 = g01 = g11 = b0 = b1 = 0.0
+        for c in range(C):
+            gx, gy, rr = gxs[n, c], gys[n, c], res[n, c]
+            g00 += gx * gx
+            g01 += gx * gy
+            g11 += gy * gy
+            b0 += gx * rr
+            b1 += gy * rr
+        cell = idx[n, 0]
+        seen[cell] = n
+        for k in range(4):
+            wk = w[n, k]
+            Jtr[2 * idx[n, k]] += wk * b0
+            Jtr[2 * idx[n, k] + 1] += wk * b1
+            for m in range(4):
+                ww = wk * w[n, m]
+                blocks[cell, 2 * k, 2 * m] += ww * g00
+                blocks[cell, 2 * k, 2 * m + 1] += ww * g01
+                blocks[cell, 2 * k + 1, 2 * m] += ww * g01
+                blocks[cell, 2 * k + 1, 2 * m + 1] += ww * g11
+    return blocks, Jtr, seen
+
+
 def solve_grid_warp(ref: np.ndarray, nb: np.ndarray, flow: np.ndarray, valid: np.ndarray, *,
                     gx: int = 40, gy: int = 30, w_r: float = 1.2, w_a: float = 0.5,
-                    iterations: int = 5) -> tuple[np.ndarray, list[float]]:
+                    iterations: int = 5, reference: bool = False) -> tuple[np.ndarray, list[float]]:
     """Gauss-Newton solution of Eq. 5.
 
     ref: I_k (H, W, C); nb: I_k' (H', W', C); flow: w_k'(u, M0) (H, W, 2) positions in the
     neighbour image; valid: (H, W) pixels that take part. Returns the offsets (gy+1, gx+1, 2) and
-    the energy before each iteration and after the last (len iterations + 1).
+    the energy before each iteration and after the last (len iterations + 1). `reference`:
+    the normal equations from the formed Jacobian (gauss_newton_terms_reference).
     """
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
@@ -150,14 +224,10 @@ def solve_grid_warp(ref: np.ndarray, nb: np.ndarray, flow: np.ndarray, valid: np
         if it == iterations:
             break
         gxs, gys = _sample(gxi, q), _sample(gyi, q)  # (N, C)
-        # Jacobian rows (N*C) x cols (2L): d res / d f_l = grad I_k'(q) * theta_l
-        rows = np.repeat(np.arange(N * C), 8)
-        colx = (2 * idx)[:, None, :].repeat(C, 1)  # (N, C, 4)
-        cols = np.stack([colx, colx + 1], -1).reshape(-1)  # (N, C, 4, 2)
-        vals = (w[:, None, :, None] * np.stack([gxs, gys], -1)[:, :, None, :]).reshape(-1)
-        J = sp.csr_matrix((vals, (rows, cols)), shape=(N * C, 2 * L))
+        terms = gauss_newton_terms_reference if reference else gauss_newton_terms
+        JtJ, Jtr = terms(w, idx, gxs, gys, res, L)
         fv = f.reshape(-1)
-        lhs = (J.T @ J + w_r * sp.identity(2 * L) + w_a * AtA).tocsc()
-        rhs = -(J.T @ res.reshape(-1) + w_r * fv + w_a * (AtA @ fv))
+        lhs = (JtJ + w_r * sp.identity(2 * L) + w_a * AtA).tocsc()
+        rhs = -(Jtr + w_r * fv + w_a * (AtA @ fv))
         f = (fv + spsolve(lhs, rhs)).reshape(L, 2)
     return f.reshape(gy + 1, gx + 1, 2), energies

@@ -50,6 +50,26 @@ def test_grid_warp_reduces_a_smooth_misalignment():
     warped = apply_warp(u[valid], offs, W, H)
     err = np.abs(warped - (u[valid] - shift)).mean()
     assert err < np.abs(shift).mean(), err  # closer to the true flow than the given one
+    # the per-cell normal equations against the formed Jacobian's: the same Gauss-Newton steps
+    offs_ref, energies_ref = solve_grid_warp(ref, tex, u, valid, gx=8, gy=6, w_r=1.2, w_a=0.5,
+                                             iterations=5, reference=True)
+    assert np.allclose(offs, offs_ref, atol=1e-9) and np.allclose(energies, energies_ref)
+
+
+def test_grid_warp_normal_equations_match_the_formed_jacobian():
+    from ibr_pipeline.geometry.grid_warp import (bilinear_weights, gauss_newton_terms,
+                                                 gauss_newton_terms_reference)
+    rng = np.random.default_rng(2)
+    W, H, gx, gy, C = 64, 48, 8, 6, 3
+    p = rng.random((3000, 2)) * [W - 1, H - 1]
+    p[:5] = [[0, 0], [W - 1, H - 1], [W - 1, 0], [-3, 10], [10, 99]]  # corners, clamped points
+    idx, w = bilinear_weights(p, W, H, gx, gy)
+    g1, g2, r = (rng.standard_normal((3000, C)) for _ in range(3))
+    L = (gx + 1) * (gy + 1)
+    A, b = gauss_newton_terms(w, idx, g1, g2, r, L)
+    A0, b0 = gauss_newton_terms_reference(w, idx, g1, g2, r, L)
+    assert A.shape == A0.shape == (2 * L, 2 * L)
+    assert abs(A - A0).max() < 1e-9 * abs(A0).max() and np.allclose(b, b0, atol=1e-9)
 
 
 def run_stage(ws, overrides: dict | None = None, force: bool = False):
@@ -157,25 +177,6 @@ def test_bad_input_and_config(tiny_ws, tmp_path):
     np.save(bws.path(bws.view_file(name, "depth.npy")), d)
     with pytest.raises(InputError, match="depth.npy"):
         Loader(bws, bws.scene(), ReflectionConfig()).raw(name)
-
-
-def test_block_pcg_solves_the_normal_equations_with_fixed_variables():
-    import scipy.sparse as sp
-    from ibr_pipeline.geometry.block_pcg import _block_pcg
-    rng = np.random.default_rng(0)
-    A = sp.random(300, 120, density=0.05, random_state=1) + sp.identity(300, format="csr")[:, :120]
-    H = (A.T @ A + 0.1 * sp.identity(120)).tocsr()
-    g = rng.standard_normal((120, 3))
-    x = _block_pcg(H, g, np.zeros((120, 3)), np.ones((120, 3), bool), iterations=500, tol=1e-10)
-    assert np.allclose(x, np.linalg.solve(H.toarray(), g), atol=1e-6)
-    free = np.ones((120, 3), bool)
-    free[:10] = False
-    x0 = np.full((120, 3), 0.25)
-    x = _block_pcg(H, g, x0, free, iterations=500, tol=1e-10)
-    assert np.all(x[:10] == 0.25)
-    Hd = H.toarray()
-    ref = np.linalg.solve(Hd[10:, 10:], g[10:] - Hd[10:, :10] @ x0[:10])
-    assert np.allclose(x[10:], ref, atol=1e-6)
 
 
 def test_mirror_points_skip_a_thick_noisy_reflector():
