@@ -80,9 +80,9 @@ def _variants(specs: list[str]) -> list[dict]:
     return out
 
 
-def _ibr(src: Path, args: list[str]) -> tuple[float, float, str]:
+def _ibr(src: Path, args: list[str]) -> tuple[float, float]:
     """Run `python -m ibr_pipeline ARGS` with `src` first on the path: (wall s, CPU s of it
-    and every worker it waited for, output tail)."""
+    and every worker it waited for)."""
     env = dict(os.environ, PYTHONPATH=str(src))
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -94,7 +94,7 @@ def _ibr(src: Path, args: list[str]) -> tuple[float, float, str]:
     if res.returncode != 0:
         raise RuntimeError(f"ibr {' '.join(args)} (src {src}) exited {res.returncode}:\n"
                            f"{(res.stdout + res.stderr)[-3000:]}")
-    return wall, cpu, (res.stdout + res.stderr)[-2000:]
+    return wall, cpu
 
 
 def _scene(root: Path, views: int, a) -> Path:
@@ -160,7 +160,7 @@ def main(a: argparse.Namespace) -> int:
                         "--no-progress", *sets]
                 if first is None and s == "ingest":
                     args += ["--input", str(scene)]
-                wall, cpu, _ = _ibr(v["src"], args)
+                wall, cpu = _ibr(v["src"], args)
                 row = {"views": n, "variant": v["name"], "stage": s, "wall_s": round(wall, 2),
                        "cpu_s": round(cpu, 2), "cpu_s_per_view": round(cpu / n, 4),
                        "cpu_s_per_mp": round(cpu / (n * mp), 3)}

@@ -258,7 +258,8 @@ def _log_run(ws: Workspace, results: Sequence[StageResult], configs: dict[str, S
     entry = {"finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "command": list(command),
              "config": {name: cfg.to_dict() for name, cfg in configs.items()},
              "stages": [{"stage": r.name, "result": r.result, "seconds": round(r.seconds, 3),
-                         "cpu_seconds": round(r.cpu_seconds, 3), "views_run": r.views_run, "views_failed": r.views_failed,
+                         "cpu_seconds": round(r.cpu_seconds, 3), "views_run": r.views_run,
+                         "views_failed": r.views_failed,
                          "views_total": r.views_total} for r in results]}
     path = ws.root / ".ibr" / "runs.jsonl"
     try:

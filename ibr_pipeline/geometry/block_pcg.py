@@ -1,56 +1,17 @@
 """Jacobi-preconditioned conjugate gradients with several right-hand sides and fixed variables
 (the image step of the reflection decomposition, decompose.Problem.image_step).
 
-The image step's matrix has the form H = A^T A + D^T diag(s) D + diag(d) (`NormalOperator`:
-the data term's sampling matrix A, the smoothness term's differences D with their weights s, the
-diagonal terms d). Two implementations of one algorithm: `block_pcg_reference` (scipy sparse
+Two implementations of one algorithm: `block_pcg_reference` (scipy sparse
 mat-vecs and numpy reductions, ~10 passes over memory per iteration) and `block_pcg` (numba
 kernels: the mat-vec reads each stored entry once for the three colour channels, fused with the
-dot products and the updates). Applying H through A and D row by row, without forming A^T A,
-was measured slower (its scattered writes miss the cache): H is formed once per image step.
+dot products and the updates). Applying H = A^T A + ... through A row by row, without forming
+A^T A, was measured slower (its scattered writes miss the cache): the image step forms H once.
 tests/reflection/test_block_pcg.py checks that they agree; `ibr bench speed` times both.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from numba import njit
-
-
-@dataclass
-class NormalOperator:
-    """H = A^T A + D^T diag(s) D + diag(d): A (N, P), D (E, P) scipy sparse, s (E,), d (P,)."""
-
-    A: object
-    D: object
-    s: np.ndarray
-    d: np.ndarray
-
-    def __post_init__(self) -> None:
-        import scipy.sparse as sp
-        self.A, self.D = sp.csr_matrix(self.A), sp.csr_matrix(self.D)
-        P = self.A.shape[1]
-        self.s = np.asarray(self.s, np.float64).reshape(-1)
-        self.d = np.broadcast_to(np.asarray(self.d, np.float64), (P,)).copy()
-        if self.D.shape[1] != P or self.s.shape != (self.D.shape[0],):
-            raise ValueError(f"need A (N, P), D (E, P), s (E,), d (P,); got {self.A.shape}, "
-                             f"{self.D.shape}, {self.s.shape}, {self.d.shape}")
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        P = self.A.shape[1]
-        return P, P
-
-    def matrix(self):
-        """H as one scipy CSR matrix, formed on first use and kept (the active-set re-solves of
-        one image step share it)."""
-        import scipy.sparse as sp
-        if getattr(self, "_H", None) is None:
-            self._H = (self.A.T @ self.A + self.D.T @ sp.diags(self.s) @ self.D
-                       + sp.diags(self.d)).tocsr()
-            self._H.sort_indices()
-        return self._H
 
 
 def _check(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray) -> None:
@@ -69,8 +30,6 @@ def block_pcg_reference(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray,
     Each column stops when its residual is below `tol` x its right-hand side's norm; `info`
     receives the iterations run ("iterations")."""
     _check(H, g, x0, free)
-    if isinstance(H, NormalOperator):
-        H = H.matrix()
     F = free.astype(np.float64)
     xb = x0 * (1 - F)
     rhs = F * (g - H @ xb)
@@ -107,11 +66,10 @@ def block_pcg_reference(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray,
 
 def block_pcg(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray, iterations: int = 150,
               tol: float = 1e-6, info: dict | None = None) -> np.ndarray:
-    """`block_pcg_reference` in numba kernels (the same iterates up to rounding). H: a
-    `NormalOperator` or a sparse matrix."""
+    """`block_pcg_reference` in numba kernels (the same iterates up to rounding)."""
     import scipy.sparse as sp
     _check(H, g, x0, free)
-    Hc = H.matrix() if isinstance(H, NormalOperator) else sp.csr_matrix(H)
+    Hc = sp.csr_matrix(H)
     if not Hc.has_sorted_indices:
         Hc = Hc.sorted_indices()
     x, done = _pcg_kernel(_i32(Hc.indptr), _i32(Hc.indices), _f64(Hc.data),

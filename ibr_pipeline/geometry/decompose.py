@@ -339,11 +339,12 @@ class Problem:
             A, r = sp.vstack(As).tocsr(), np.concatenate(rs)
         else:
             A, r = self.A, self.r
-        from .block_pcg import NormalOperator, block_pcg, block_pcg_reference  # numba: lazily
+        from .block_pcg import block_pcg, block_pcg_reference  # numba: lazily
         w0, w1 = self._weights(x0)
         D = self.D
         lam_mv = self.lambda_mv if self.target0 is not None else 0.0
-        # H = A^T A + lambda_s D^T diag(w0 + w1) D + diag(2 lambda_p + 2 lambda_mv [+ prior])
+        # H = A^T A + lambda_s D^T diag(w0 + w1) D + diag(2 lambda_p + 2 lambda_mv [+ prior]),
+        # formed once: the active-set re-solves share it
         diag = np.full(self.P, 2 * o.lambda_p + 2 * lam_mv)
         g = A.T @ r + o.lambda_s * (D.T @ (w0[:, None] * (D @ self.Im))) + o.lambda_p * self.Im
         if lam_mv > 0:
@@ -355,7 +356,8 @@ class Problem:
             k = np.all(np.isfinite(self.prior), axis=1)
             diag = diag + o.lambda_scene * k
             g = g + o.lambda_scene * np.where(k[:, None], np.nan_to_num(self.prior), 0.0)
-        Hop = NormalOperator(A, D, o.lambda_s * (w0 + w1), diag)
+        Hm = (A.T @ A + o.lambda_s * (D.T @ sp.diags(w0 + w1) @ D) + sp.diags(diag)).tocsr()
+        Hm.sort_indices()
         solve = block_pcg if o.kernels == "numba" else block_pcg_reference
         x = np.clip(x0, 0, hi)
         free = np.ones_like(x, bool)
@@ -363,7 +365,7 @@ class Problem:
         for it in range(3):  # active set: variables at a violated bound are fixed there
             # re-solves start from the previous solution: fewer iterations (speed)
             info: dict = {}
-            x = solve(Hop, g, x, free,
+            x = solve(Hm, g, x, free,
                       iterations=o.cg_iterations if it == 0 else o.resolve_iterations, info=info)
             cg += info["iterations"]
             viol = ((x < 0) | (x > hi)) & free

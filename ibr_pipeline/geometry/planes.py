@@ -114,14 +114,9 @@ def ray_plane_hits(camera: Camera, plane, uv: np.ndarray | None = None) -> tuple
     """For every pixel: world point where its ray meets the plane (H, W, 3) and that point's
     z-depth (H, W) in the camera (<= 0 or inf where the plane is behind / parallel). With `uv`
     (N, 2) pixel positions: the same for those pixels only, (N, 3) and (N,)."""
+    from .raycast import pixel_directions
     p = _plane(plane)
-    flat = camera.pixel_grid().reshape(-1, 2) if uv is None else np.asarray(uv, np.float64)
-    if flat.ndim != 2 or flat.shape[1] != 2:
-        raise ValueError(f"uv must be (N, 2), got {flat.shape}")
-    # z = 1 rays R^T K^-1 [u, v, 1] as one (3, 3) map, applied elementwise: a (N, 3) @ (3, 3)
-    # product goes through BLAS, slow on this shape (raycast.camera_rays)
-    M = camera.R.T @ np.linalg.inv(camera.K)
-    d_world = flat[:, :1] * M[:, 0] + flat[:, 1:] * M[:, 1] + M[:, 2]
+    d_world = pixel_directions(camera, uv)  # z = 1 rays
     c = camera.center
     denom = d_world[:, 0] * p[0] + d_world[:, 1] * p[1] + d_world[:, 2] * p[2]
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -25,14 +25,23 @@ def build_scene(vertices: np.ndarray, triangles: np.ndarray):
     return scene
 
 
-def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """World-space ray origins (N, 3) and unit directions (N, 3) through the (N, 2) pixel
-    positions `uv` (default: every pixel centre, N = H*W, row-major)."""
+def pixel_directions(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
+    """World-space directions (N, 3) through the (N, 2) pixel positions `uv` (default: every
+    pixel centre, N = H*W, row-major), scaled so that their z in the camera is 1 (a ray
+    parameter along them is a z-depth)."""
     uv = camera.pixel_grid().reshape(-1, 2) if uv is None else np.asarray(uv, np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"uv must be (N, 2), got {uv.shape}")
     # R^T K^-1 [u, v, 1] for each row, as one (3, 3) map applied to u, v plus a constant
     M = camera.R.T @ np.linalg.inv(camera.K)
     # elementwise, not a (N, 2) @ (2, 3) product: BLAS was slow on it under load
-    d_world = uv[:, :1] * M[:, 0] + uv[:, 1:] * M[:, 1] + M[:, 2]
+    return uv[:, :1] * M[:, 0] + uv[:, 1:] * M[:, 1] + M[:, 2]
+
+
+def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space ray origins (N, 3) and unit directions (N, 3) through the (N, 2) pixel
+    positions `uv` (default: every pixel centre, N = H*W, row-major)."""
+    d_world = pixel_directions(camera, uv)
     d_world /= np.sqrt(np.einsum("ij,ij->i", d_world, d_world))[:, None]
     origins = np.broadcast_to(camera.center, d_world.shape).copy()
     return origins, d_world

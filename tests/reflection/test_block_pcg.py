@@ -53,35 +53,6 @@ def test_shapes_are_checked():
         block_pcg(H, g[:10], np.zeros((10, 3)), np.ones((10, 3), bool))
 
 
-def _operator(P=150, N=400, seed=5):
-    from ibr_pipeline.geometry.block_pcg import NormalOperator
-    rng = np.random.default_rng(seed)
-    A = sp.random(N, P, density=0.03, random_state=seed)
-    E = 2 * P
-    rows = np.repeat(np.arange(E), 2)
-    cols = rng.integers(0, P, 2 * E)
-    D = sp.csr_matrix((np.tile([-1.0, 1.0], E), (rows, cols)), shape=(E, P))
-    return NormalOperator(A, D, rng.random(E), 0.05 + rng.random(P) * (rng.random(P) > 0.5))
-
-
-@pytest.mark.parametrize("iterations", [1, 9, 60])
-def test_the_normal_operator_is_the_sum_of_its_terms(iterations):
-    """H = A^T A + D^T diag(s) D + diag(d) through both solvers, as an operator and as a matrix."""
-    op = _operator()
-    H = op.matrix()
-    assert np.allclose(H.toarray(), (op.A.T @ op.A).toarray() + (op.D.T @ sp.diags(op.s) @ op.D).toarray()
-                       + np.diag(op.d))
-    rng = np.random.default_rng(6)
-    g = rng.standard_normal((150, 3))
-    free = rng.random((150, 3)) > 0.1
-    x0 = rng.random((150, 3))
-    a = block_pcg_reference(op, g, x0, free, iterations=iterations, tol=1e-12)
-    b = block_pcg(op, g, x0, free, iterations=iterations, tol=1e-12)
-    c = block_pcg(H, g, x0, free, iterations=iterations, tol=1e-12)
-    assert np.allclose(a, b, rtol=1e-8, atol=1e-10) and np.allclose(b, c, rtol=1e-8, atol=1e-10)
-    assert np.abs(b - x0)[free].max() > 1e-3
-
-
 def test_both_report_the_iterations_they_ran():
     H, g = _problem()
     counts = []
