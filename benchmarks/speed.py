@@ -11,7 +11,7 @@ process (the variant's source tree first on PYTHONPATH, its `--set` overrides ad
 seconds, and CPU seconds of the process and its workers (RUSAGE_CHILDREN), imports included as a
 user pays them. After the stages, `speed_frames.py` (run with the variant's tree) renders the
 fly-through twice with hysteresis (median ms of the second pass) and the held-out test cameras
-(PSNR against gt/test/images).
+three times (PSNR against gt/test/images; median ms of the last two passes).
 
 Variants: `--variant before=/tmp/base` times a checkout of an older commit (`git worktree add
 /tmp/base HEAD~3`); `--variant ref=.,reflection.decompose.kernels=reference` this tree with an
@@ -229,14 +229,17 @@ def markdown(res: dict) -> str:
     fr = [r for r in rows if r["stage"] == "frame"]
     if fr:
         lines += ["", "| views | variant | frame median ms | p90 ms | GL ms | post ms | views "
-                  "blended | ms/MP | x Xu | x base | held-out PSNR dB | PSNR - base |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "blended | ms/MP | x Xu | x base | held-out ms (GL / post) | held-out holes | "
+                  "held-out PSNR dB | PSNR - base |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in fr:
             b = ref.get((r["views"], "frame"))
             lines.append(f"| {r['views']} | {r['variant']} | {r['median_ms']:.1f} | "
                          f"{r['p90_ms']:.1f} | {r['median_gl_ms']:.1f} | {r['median_post_ms']:.1f} | "
                          f"{r['mean_selected_views']:.1f} | {r['ms_per_mp']} | {r['x_xu']} | "
-                         f"{r['median_ms'] / b['median_ms']:.2f} | {r['psnr']:.3f} | "
+                         f"{r['median_ms'] / b['median_ms']:.2f} | {r['heldout_median_ms']:.1f} "
+                         f"({r['heldout_median_gl_ms']:.1f} / {r['heldout_median_post_ms']:.1f}) | "
+                         f"{100 * r['heldout_holes']:.2f} % | {r['psnr']:.3f} | "
                          f"{r['psnr'] - b['psnr']:+.3f} |" if b else "")
     if res["linearity"]:
         lines += ["", "| variant | stage | views ratio | CPU ratio |", "|---|---|---|---|"]
