@@ -127,11 +127,9 @@ def blend(colors: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return out.astype(np.float32), wsum.astype(np.float32)
 
 
-def _pyramid_fill(color: np.ndarray, weight: np.ndarray, levels: int,
-                  complete: list | None = None) -> np.ndarray:
+def _pyramid_fill(color: np.ndarray, weight: np.ndarray, levels: int) -> np.ndarray:
     """Push-pull from level 1 down: the smooth fill at half resolution (covered cells keep their
-    colour there), returned upsampled to full resolution. `complete`, when given, receives
-    whether the coarsest level was fully covered (else its empty cells are filled with 0)."""
+    colour there), returned upsampled to full resolution."""
     import cv2
 
     h, w = weight.shape
@@ -146,11 +144,7 @@ def _pyramid_fill(color: np.ndarray, weight: np.ndarray, levels: int,
         pyr.append((cw, ww))
         if ww.min() > 0:
             break
-    if not pyr:  # a window 1 pixel thin: nothing to push
-        pyr.append((cw.reshape(h, w, -1), ww))
     cw, ww = pyr[-1]
-    if complete is not None:
-        complete.append(bool(ww.min() > 0))
     out = cw / np.maximum(ww, 1e-12)[..., None]
     for cw, ww in reversed(pyr[:-1]):  # pull: fill each level from the coarser one
         up = cv2.resize(out, (ww.shape[1], ww.shape[0]), interpolation=cv2.INTER_LINEAR)
@@ -158,51 +152,6 @@ def _pyramid_fill(color: np.ndarray, weight: np.ndarray, levels: int,
         a = np.minimum(ww * 4.0, 1.0)[..., None]  # well-covered cells keep their own colour
         out = a * (cw / np.maximum(ww, 1e-12)[..., None]) + (1 - a) * up
     return cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, -1)
-
-
-def hole_windows(holes: np.ndarray, max_fraction: float = 0.4, min_margin: int = 0,
-                 max_holes: float = 0.05) -> list[tuple[int, int, int, int]] | None:
-    """Windows (y0, y1, x0, x1) that hold every hole pixel with a margin of covered pixels
-    wider than the hole is thick (one per connected hole, merged where they overlap), each
-    aligned to the pyramid cells of that width, so that a push-pull inside the window sees what
-    the whole-frame push-pull sees near that hole. None when the windows would cover more than
-    `max_fraction` of the frame, or the holes more than `max_holes` of it (the whole frame is
-    cheaper then). The margin is at least `min_margin` pixels (the seam blending's reach)."""
-    import cv2
-
-    holes = np.asarray(holes, bool)
-    if holes.ndim != 2:
-        raise ValueError(f"holes must be (H, W), got {holes.shape}")
-    H, W = holes.shape
-    if holes.mean() > max_holes:
-        return None
-    n, lab, st, _ = cv2.connectedComponentsWithStats(holes.astype(np.uint8), connectivity=8)
-    # a hole's push-pull is complete at the level whose cells span its thickness (twice its
-    # inscribed radius: the distance from its innermost pixel to the nearest covered one)
-    depth = cv2.distanceTransform(holes.astype(np.uint8), cv2.DIST_L2, 3)
-    wins = []
-    for k, (x, y, w, h, _) in enumerate(st[1:], start=1):
-        r = float(depth[y:y + h, x:x + w][lab[y:y + h, x:x + w] == k].max())
-        a = 1 << (int(np.ceil(np.log2(2 * r + 1))) + 1)
-        a = max(a, -(-min_margin // a) * a)
-        wins.append([max(0, (y - a) // a * a), min(H, -(-(y + h + a) // a) * a),
-                     max(0, (x - a) // a * a), min(W, -(-(x + w + a) // a) * a)])
-    merged = True
-    while merged and len(wins) > 1:  # overlapping windows become their bounding box
-        merged = False
-        out = []
-        for b in wins:
-            for o in out:
-                if b[0] < o[1] and o[0] < b[1] and b[2] < o[3] and o[2] < b[3]:
-                    o[:] = [min(o[0], b[0]), max(o[1], b[1]), min(o[2], b[2]), max(o[3], b[3])]
-                    merged = True
-                    break
-            else:
-                out.append(b)
-        wins = out
-    if sum((b[1] - b[0]) * (b[3] - b[2]) for b in wins) > max_fraction * H * W:
-        return None
-    return [tuple(int(v) for v in b) for b in wins]
 
 
 def push_pull(color: np.ndarray, weight: np.ndarray, levels: int = 12) -> np.ndarray:
@@ -220,64 +169,18 @@ def push_pull(color: np.ndarray, weight: np.ndarray, levels: int = 12) -> np.nda
     return (w[..., None] * color + (1 - w[..., None]) * fill).astype(np.float32)
 
 
-def fill_holes(color: np.ndarray, covered: np.ndarray, decay_px: float = HOLE_DECAY_PX,
-               need: np.ndarray | None = None) -> np.ndarray:
+def fill_holes(color: np.ndarray, covered: np.ndarray,
+               decay_px: float = HOLE_DECAY_PX) -> np.ndarray:
     """§5.1.4 holes (our alternative to tile-based voxel rendering, see docs/RENDERING.md):
     uncovered pixels take a push-pull fill; the warped result's weight decays to that fill within
     `decay_px` of a hole's border (the paper's "weight decay at the hole boundary"), so the seam
-    between the warped and the filled parts is smooth.
-
-    The push-pull runs only over windows around small holes (`hole_windows`), else over the
-    whole frame (also when a window misses the colour its hole needs). `need` (H, W) bool: the
-    pixels whose value matters; only the box holding them and every covered pixel is filled.
-    Reference: `fill_holes_frame`, the whole-frame version (tests/render/test_blend.py compares
-    them)."""
+    between the warped and the filled parts is smooth."""
     import cv2
 
     color = np.asarray(color, dtype=np.float32)
     covered = np.asarray(covered, bool)
     if color.ndim != 3 or covered.shape != color.shape[:2]:
         raise ValueError(f"covered {covered.shape} does not match color {color.shape}")
-    if need is not None and np.shape(need) != covered.shape:
-        raise ValueError(f"need {np.shape(need)} does not match covered {covered.shape}")
-    holes = ~covered if need is None else ~covered & np.asarray(need, bool)
-    if not holes.any() or not covered.any():
-        return color
-    if need is not None:  # the box of what is needed and of all the colour there is
-        H, W = covered.shape
-        m = int(np.ceil(decay_px)) + 1
-        rows = np.flatnonzero((need | covered).any(1))
-        cols = np.flatnonzero((need | covered).any(0))
-        y0, x0 = max(0, (rows[0] - m) // 64 * 64), max(0, (cols[0] - m) // 64 * 64)
-        y1, x1 = min(H, rows[-1] + 1 + m), min(W, cols[-1] + 1 + m)
-        out = color.copy()
-        out[y0:y1, x0:x1] = fill_holes(color[y0:y1, x0:x1], covered[y0:y1, x0:x1], decay_px)
-        return out
-    wins = hole_windows(holes, min_margin=int(np.ceil(decay_px)) + 1)
-    if wins is None:
-        return fill_holes_frame(color, covered, decay_px)
-    dist = cv2.distanceTransform(covered.astype(np.uint8), cv2.DIST_L2, 3)
-    a = np.minimum(dist * np.float32(1.0 / max(decay_px, 1e-9)), np.float32(1.0))  # 0 in holes
-    out = color.copy()
-    for y0, y1, x0, x1 in wins:
-        s = np.s_[y0:y1, x0:x1]
-        done: list = []
-        fill = _pyramid_fill(color[s], covered[s].astype(np.float32), 12, done)
-        if not done[0]:  # the window holds too little colour: the whole frame's fill
-            return fill_holes_frame(color, covered, decay_px)
-        sub = a[s] < 1
-        aw = a[s][sub][:, None]
-        out[s][sub] = aw * color[s][sub] + (1 - aw) * fill[sub]
-    return out
-
-
-def fill_holes_frame(color: np.ndarray, covered: np.ndarray,
-                     decay_px: float = HOLE_DECAY_PX) -> np.ndarray:
-    """`fill_holes` with the push-pull over the whole frame."""
-    import cv2
-
-    color = np.asarray(color, dtype=np.float32)
-    covered = np.asarray(covered, bool)
     if covered.all() or not covered.any():
         return color
     fill = _pyramid_fill(color, covered.astype(np.float32), 12)

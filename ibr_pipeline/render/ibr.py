@@ -346,8 +346,7 @@ class IBRModel:
             color4 = blend.fill_holes(color4, covered, s.hole_decay_px)
         beta = np.clip(color4[..., 3], 0.0, 1.0)
         if s.fill_holes and i1 is not None and ((beta > 1e-4) & ~cov1).any():
-            # I1 counts only where beta > 0 (Eq. 3): its holes elsewhere stay unfilled
-            i1 = blend.fill_holes(i1, cov1, s.hole_decay_px, need=beta > 1e-4)
+            i1 = blend.fill_holes(i1, cov1, s.hole_decay_px)
         color = color4[..., :3] if i1 is None else blend.compose(color4[..., :3], beta, i1)
         depth = np.where(covered & (front < 1e29), front, 0.0).astype(np.float32)
         t3 = time.perf_counter()

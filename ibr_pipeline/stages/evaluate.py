@@ -365,4 +365,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="5", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="4", run=run, inputs=inputs, outputs=outputs)

@@ -1,7 +1,6 @@
 """Numpy reference formulas of §5.1.3–5.1.4 against hand-computed values."""
 import math
 
-import cv2
 import numpy as np
 import pytest
 
@@ -70,59 +69,3 @@ def test_compose_eq3_and_shape_errors():
         blend.compose(i0, beta[:1], i1)
     with pytest.raises(ValueError, match="K, H, W"):
         blend.fuzzy_depth_test(np.zeros((2, 2)), np.zeros((2, 2)))
-
-
-def _textured(h=192, w=256, seed=0):
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:h, 0:w]
-    img = np.stack([0.5 + 0.4 * np.sin(x / 9.0), 0.5 + 0.4 * np.cos(y / 7.0),
-                    0.3 + 0.2 * np.sin((x + y) / 13.0)], -1)
-    return (img + 0.02 * rng.standard_normal(img.shape)).astype(np.float32)
-
-
-def test_windowed_fill_matches_the_whole_frame_fill():
-    """Small holes: the push-pull over windows around them gives the whole-frame fill's pixels
-    (issue #28: the same pixels within tolerance), and leaves pixels far from holes alone."""
-    img = _textured()
-    covered = np.ones(img.shape[:2], bool)
-    covered[10:13, 20:23] = False      # a speck
-    covered[50:58, 70:75] = False      # a blob
-    covered[80, 5:40] = False          # a thin scratch
-    covered[0:4, 248:256] = False      # at a corner
-    assert blend.hole_windows(~covered) is not None  # the windowed path is the one tested
-    a = blend.fill_holes(img, covered)
-    b = blend.fill_holes_frame(img, covered)
-    assert np.abs(a - b).max() < 0.02
-    assert np.abs(a - b)[~covered].mean() < 2e-3
-    far = cv2.distanceTransform(covered.astype(np.uint8), cv2.DIST_L2, 3) > 3
-    assert np.array_equal(a[far], img[far])
-    lo, hi = img[covered].min(0), img[covered].max(0)  # push-pull averages covered colours
-    assert np.all(a[~covered] >= lo - 1e-5) and np.all(a[~covered] <= hi + 1e-5)
-
-
-def test_fill_only_where_needed_and_whole_frame_for_big_holes():
-    """The reflection layer's case: colour only inside a box (where it was rendered), needed
-    only where beta > 0: the fill of that box equals the whole frame's, the rest is left alone."""
-    img = _textured(seed=1)
-    covered = np.zeros(img.shape[:2], bool)
-    covered[20:100, 30:150] = True
-    covered[50:56, 60:66] = False            # a hole inside the reflector
-    need = np.zeros(covered.shape, bool)
-    need[25:95, 35:145] = True
-    marked = img.copy()
-    marked[~covered] = 7.0  # a value no fill produces
-    out = blend.fill_holes(marked, covered, need=need)
-    assert np.all(out[150:, 200:] == 7.0)                       # far from it: left alone
-    ref = blend.fill_holes_frame(marked, covered)
-    hole = np.s_[50:56, 60:66]
-    assert np.all(out[hole] < 1.0)                              # the needed hole is filled
-    far = cv2.distanceTransform(covered.astype(np.uint8), cv2.DIST_L2, 3) > 3
-    assert np.allclose(out[need & far], img[need & far], atol=1e-5)  # blendLinear rounding
-    # in the hole the fills differ (pyramids of another extent): the box's is about as close to
-    # the true texture there as the whole frame's (0.022 vs 0.019 mean error on this texture)
-    err, err_ref = np.abs(out[hole] - img[hole]).mean(), np.abs(ref[hole] - img[hole]).mean()
-    assert err < 1.25 * err_ref
-    big = np.ones(img.shape[:2], bool)
-    big[:, :140] = False  # more than half of the frame: the whole-frame push-pull itself
-    assert blend.hole_windows(~big) is None
-    assert np.array_equal(blend.fill_holes(img, big), blend.fill_holes_frame(img, big))
