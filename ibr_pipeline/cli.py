@@ -35,6 +35,7 @@ COMMAND_MODULES = (
     "ibr_pipeline.commands.warp",     # ibr warp
     "ibr_pipeline.commands.report",   # ibr report
     "ibr_pipeline.commands.export",   # ibr export
+    "ibr_pipeline.commands.view",     # ibr view (browser viewer)
     "ibr_pipeline.commands.bench",    # ibr bench NAME (benchmarks/)
 )
 

@@ -16,7 +16,8 @@ LAYERS = {
     "geometry": {"geometry"},
     "algorithms": {"render", "raytree", "nn"},
     "synthetic": {"synthetic"},
-    "orchestration": {"runner", "executors", "pipeline", "stages", "gt_workspace", "report"},
+    "orchestration": {"runner", "executors", "pipeline", "stages", "gt_workspace", "report",
+                      "viewer"},
     "cli": {"cli", "commands", "__main__", "__init__"},
 }
 ORDER = list(LAYERS)

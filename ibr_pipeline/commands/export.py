@@ -1,4 +1,4 @@
-"""`ibr export WS [--out DIR] [--what colmap,transforms,glb] [--views NAME,...] [--no-progress]`.
+"""`ibr export WS [--out DIR] [--what colmap,transforms,glb,web] [--web] [--views NAME,...]`.
 
 Writes a finished workspace's results in formats other tools read, into DIR (default WS/export):
 
@@ -14,7 +14,9 @@ Writes a finished workspace's results in formats other tools read, into DIR (def
   contribution, so that surface + reflection, added, is the photo (Eq. 3: I = I0 + beta I1; I1.png
   alone is the reflected scene before attenuation). The sum holds in linear radiance: layers are
   decoded from the scene's encoding, added there, and the textures written sRGB-encoded, as glTF
-  requires of base colours.
+  requires of base colours;
+* `web/`: the browser viewer's bundle of every registered view (viewer/bundle.py; `ibr view WS`
+  writes it too): only with `--what web` or `--web`, not part of the default set.
 
 Everything lands in a staging folder inside DIR first and is moved into place only when all of it
 was written: a missing stage output (one line naming the file and the stage to run, exit 2) or a
@@ -30,6 +32,7 @@ import tempfile
 from pathlib import Path
 
 WHAT = ("colmap", "transforms", "glb")
+EXTRA = ("web",)  # asked for by name only
 
 
 def register(sub) -> None:
@@ -42,7 +45,10 @@ def register(sub) -> None:
     p.add_argument("workspace", type=Path, help="workspace folder")
     p.add_argument("--out", type=Path, metavar="DIR", help="output folder (default WS/export)")
     p.add_argument("--what", default=",".join(WHAT), metavar="LIST",
-                   help=f"comma-separated subset of {','.join(WHAT)} (default: all)")
+                   help=f"comma-separated subset of {','.join(WHAT + EXTRA)} (default: "
+                   f"{','.join(WHAT)})")
+    p.add_argument("--web", action="store_true", help="only the browser viewer's bundle (DIR/web, "
+                   "every registered view): the same as --what web")
     p.add_argument("--views", metavar="NAME,...", help="comma-separated view names to export "
                    "(default: every registered view); applies to every format")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -218,10 +224,14 @@ def main(args: argparse.Namespace) -> int:
 
     log = logging.getLogger("ibr_pipeline.export")
     ws = Workspace(args.workspace)
-    what = _csv(args.what)
-    bad = [w for w in what if w not in WHAT]
+    what = ["web"] if args.web else _csv(args.what)
+    bad = [w for w in what if w not in WHAT + EXTRA]
     if bad or not what:
-        raise InputError(f"--what: {bad[0] if bad else args.what!r} is not one of {', '.join(WHAT)}")
+        raise InputError(f"--what: {bad[0] if bad else args.what!r} is not one of "
+                         f"{', '.join(WHAT + EXTRA)}")
+    if "web" in what and args.views is not None:
+        raise InputError("--views: the web bundle holds every registered view (the viewer selects "
+                         "among them); export it without --views")
     cams = _selected_cameras(ws, args.views)
     out = Path(os.path.abspath(args.out or ws.path("export")))
     if out.exists() and not out.is_dir():
@@ -250,6 +260,9 @@ def main(args: argparse.Namespace) -> int:
                 write_glb(stage / "views" / glb_names[n], _view_nodes(ws, n, cams[n], images[n],
                                                                      layered[n], enc))
 
+    if "web" in what:
+        from ..viewer.bundle import write_bundle
+        write_bundle(ws, out / "web", progress=not args.no_progress)
     print(f"export: {out}")
     if "colmap" in what:
         files = sorted((out / "colmap").glob("*.txt"))
@@ -262,4 +275,8 @@ def main(args: argparse.Namespace) -> int:
         total = sum((out / "views" / glb_names[n]).stat().st_size for n in cams)
         print(f"  views/           {len(cams)} GLB, {sum(layered.values())} with reflection "
               f"layers, {_size(total)}")
+    if "web" in what:
+        files = [f for f in (out / "web").iterdir() if f.is_file()]
+        print(f"  web/             {len(cams)} views, {len(files)} files, "
+              f"{_size(sum(f.stat().st_size for f in files))} (`ibr view {ws.root}` serves it)")
     return 0
