@@ -37,6 +37,9 @@ def main(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port <= 65535:
         raise InputError(f"--port must be in 0..65535, got {args.port}")
+    if not (args.workspace / "ibr.toml").is_file():
+        raise InputError(f"{args.workspace}: not a workspace (no ibr.toml; make one with "
+                         f"`ibr run {args.workspace} --input PHOTOS`)")
     ws = Workspace(args.workspace)
     out = ws.path("export/web")
     if args.rebuild or not bundle_is_current(ws, out):
