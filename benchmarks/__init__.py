@@ -40,6 +40,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("speed", "benchmarks.speed",
               "per-stage CPU s per view and per megapixel, frame time, against Xu et al.'s "
               "figures and other code trees (variants) in the same run"),
+    Benchmark("viewer", "benchmarks.viewer",
+              "browser viewer in headless Chromium: load time, frame time vs the offline renderer, "
+              "agreement PSNR on held-out cameras"),
     Benchmark("synth", "benchmarks.synth",
               "synthetic scene generation: median seconds per scene"),
 )

@@ -3,35 +3,29 @@
 import base64
 import io
 import os
-import shutil
 
 import numpy as np
 import pytest
 
-# Chromium flags: software WebGL2 with no GPU, and nothing that reaches the network
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-                 "--enable-unsafe-swiftshader", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run",
-                 "--disable-quic", "--hide-scrollbars"]
-
-
 def chromium() -> str:
-    for exe in ("chromium-headless-shell", "chromium"):
-        path = shutil.which(exe)
-        if path:
-            return path
+    from ibr_pipeline.viewer.browser import EXECUTABLES, chromium_path
+    path = chromium_path()
+    if path:
+        return path
     if os.environ.get("IBR_SKIP_BROWSER") == "1":
         pytest.skip("IBR_SKIP_BROWSER=1 and no Chromium")
-    pytest.fail("no chromium-headless-shell or chromium on PATH: `make install` installs Debian's "
+    pytest.fail(f"no {' or '.join(EXECUTABLES)} on PATH: `make install` installs Debian's "
                 "chromium-headless-shell (scripts/install_system_deps.sh)")
 
 
 @pytest.fixture(scope="session")
 def browser():
     from playwright.sync_api import sync_playwright
-    exe = chromium()
+
+    from ibr_pipeline.viewer.browser import launch
+    chromium()
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
+        b = launch(p)
         yield b
         b.close()
 

@@ -139,10 +139,13 @@ function frame(cam, opts = {}) {
   return r;
 }
 
+// one frame of `cam` once its views are loaded; opts.sequence: hysteresis from the last frame
+// (a camera path), else none (an unrelated view, as `ibr render --cameras cameras.json`)
 async function renderCamera(cam, opts = {}) {
-  const sel = R.renderSelection(cam, opts.mode || state.mode, opts.previous ?? null);
-  await R.ensure(sel, opts.mode || state.mode);
-  return frame(cam, { overlay: false, previous: null, ...opts });
+  const mode = opts.mode || state.mode;
+  const previous = opts.sequence ? state.prev : null;
+  await R.ensure(R.renderSelection(cam, mode, previous), mode);
+  return frame(cam, { overlay: false, previous, mode });
 }
 
 // prefetch every view's layers, nearest first, a few at a time
