@@ -6,10 +6,11 @@ JOBS   ?= 2
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo demo-full test test-slow bench clean-demo help
+.PHONY: install demo demo-full view test test-slow bench clean-demo help
 
 help:
 	@echo "make demo       install, then run the pipeline on sample_data/ (results in $(OUT)/demo)"
+	@echo "make view       serve the browser viewer of $(OUT)/demo on http://127.0.0.1:8000/ (after make demo)"
 	@echo "make test       install, then run the test suite (fast tests)"
 	@echo "make test-slow  install, then run only the slow tests"
 	@echo "make install    system libraries (apt-get, when missing) + virtualenv $(VENV)"
@@ -34,7 +35,10 @@ demo: install
 	$(BIN)/ibr run $(OUT)/demo --input sample_data/mirror_room --jobs $(JOBS) --set supersample.time_budget_s=0
 	$(BIN)/ibr status $(OUT)/demo
 	$(BIN)/ibr report $(OUT)/demo
-	@echo "demo done: open $(OUT)/demo/report/index.html"
+	@echo "demo done: open $(OUT)/demo/report/index.html; walk through it in a browser: make view"
+
+view: install
+	$(BIN)/ibr view $(OUT)/demo
 
 test: install
 	$(BIN)/python -m pytest
