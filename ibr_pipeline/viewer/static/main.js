@@ -294,7 +294,7 @@ window.ibr = {
     const cam = c.cam_from_world ? fromManifest(c) : c;
     const r = await renderCamera(cam, opts);
     state.dirty = false;
-    return { ms: r.ms, select_ms: r.select_ms, gl_ms: r.gl_ms, selected: r.selected.map((k) => views[k].name), weights: r.weights };
+    return { ms: r.ms, select_ms: r.select_ms, gl_ms: r.gl_ms, phases: r.phases, selected: r.selected.map((k) => views[k].name), weights: r.weights };
   },
   select: (c, previous = null) => R.renderSelection(c.cam_from_world ? fromManifest(c) : c, "composite", previous).map((k) => views[k].name),
   goTo: (name) => setFromCamera(views.find((v) => v.name === name) || heldout.find((v) => v.name === name)),
@@ -302,5 +302,6 @@ window.ibr = {
   navCamera: () => navCamera(),
   keys: () => state.keys,
   cameraPath: (seconds = 2, fps = 24) => cameraPathJson(state.keys, seconds, fps),
+  profile: (on) => { R.profile = on; },
   stats: () => ({ resident: R.gpu.size, bytes: R.bytes, times: [...state.times] }),
 };

@@ -318,10 +318,10 @@ export class IBRRenderer {
     const one = L.length > 1 ? L[1] : L[0];
     this._bindTex(0, L[0].push.textures[0]); this._bindTex(1, L[0].push.textures[1]);
     this._bindTex(2, one.pull.textures[0]);
-    const decay = s.hole_decay_px;
+    const decay = s.hole_decay_px;  // a hole farther than decay_px (>= decay / 0.955 steps) leaves a = 1
     this._fullscreen(this.p.fill, t.filled[slot], t.w, t.h, { color: { int: 0 }, covered: { int: 1 },
       fill: { int: 2 }, ratio: [one.w / t.w, one.h / t.h], decay_px: decay,
-      radius: { int: Math.min(8, Math.ceil(decay / 0.955) + 1) }, enabled: s.fill_holes && L.length > 1 });
+      radius: { int: Math.min(8, Math.floor(decay / 0.955)) }, enabled: s.fill_holes && L.length > 1 });
   }
 
   // the views a frame of `cam` blends (IBRModel.select + the per_view cut), in blend order
@@ -347,12 +347,25 @@ export class IBRRenderer {
       V_n: glMat(camFromWorld4(cam)), t_n: cam.center };
     const layerFn = this.s.visibility === "per_view" ? "_layerPerView" : "_layerFuzzy";
     const t1 = performance.now();
+    const phases = {};  // with this.profile: GPU-synchronised time of each phase
+    let tp = t1;
+    const mark = (name) => {
+      if (!this.profile) return;
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.FLOAT, new Float32Array(4));  // waits (float targets)
+      const now = performance.now();
+      phases[name] = (phases[name] || 0) + now - tp;
+      tp = now;
+    };
     this[layerFn](t, common, mode === "single" ? "single" : "surface", items);
+    mark("layer0");
     this._fill(t, 0);
+    mark("fill0");
     const items1 = mode === "single" ? [] : items.filter(([k]) => this.views[k].layers.reflection);
     if (items1.length) {
       this[layerFn](t, common, "reflection", items1);
+      mark("layer1");
       this._fill(t, 1);
+      mark("fill1");
     }
     this._bindTex(0, t.filled[0].textures[0]); this._bindTex(1, t.filled[1].textures[0]);
     this._fullscreen(this.p.compose, null, cam.width, cam.height, { layer0: { int: 0 },
@@ -360,7 +373,7 @@ export class IBRRenderer {
     const px = new Uint8Array(4);
     gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);  // wait for the GPU: honest frame time
     const t2 = performance.now();
-    return { ms: t2 - t0, select_ms: t1 - t0, gl_ms: t2 - t1, selected: sel.indices,
+    return { ms: t2 - t0, select_ms: t1 - t0, gl_ms: t2 - t1, phases, selected: sel.indices,
       weights: sel.weights, drawn: items.map(([k]) => k), missing };
   }
 }
