@@ -208,10 +208,38 @@ export class IBRRenderer {
     return t;
   }
 
-  _clear(fbo, value) {
+  _clear(fbo, value) {  // the whole target, also while a pass is scissored
     const gl = this.gl;
+    const sc = gl.isEnabled(gl.SCISSOR_TEST);
+    gl.disable(gl.SCISSOR_TEST);
     gl.bindFramebuffer(gl.FRAMEBUFFER, fbo.f);
     for (let i = 0; i < fbo.n; i++) gl.clearBufferfv(gl.COLOR, i, [value, value, value, value]);
+    if (sc) gl.enable(gl.SCISSOR_TEST);
+  }
+
+  // (x, y, w, h) around the pixels whose blended beta is > 0, or null: IBRModel.render draws the
+  // reflection layer only in the box of beta > 1e-4. Read from pyramid level <= 3 (1/8 size, a
+  // conservative box a few pixels larger) to keep the read-back small.
+  _betaBox(t) {
+    const gl = this.gl;
+    const l = Math.min(3, t.levels.length - 1), L = t.levels[l];
+    gl.bindFramebuffer(gl.FRAMEBUFFER, L.push.f);
+    gl.readBuffer(gl.COLOR_ATTACHMENT0);
+    const px = new Float32Array(L.w * L.h * 4);
+    gl.readPixels(0, 0, L.w, L.h, gl.RGBA, gl.FLOAT, px);
+    let x0 = Infinity, y0 = Infinity, x1 = -1, y1 = -1;
+    for (let y = 0; y < L.h; y++) {
+      for (let x = 0; x < L.w; x++) {
+        if (px[(y * L.w + x) * 4 + 3] > 1e-7) {
+          if (x < x0) x0 = x; if (x > x1) x1 = x; if (y < y0) y0 = y; if (y > y1) y1 = y;
+        }
+      }
+    }
+    if (x1 < 0) return null;
+    const sx = t.w / L.w, sy = t.h / L.h;
+    const X0 = Math.max(0, Math.floor(x0 * sx) - 1), Y0 = Math.max(0, Math.floor(y0 * sy) - 1);
+    const X1 = Math.min(t.w, Math.ceil((x1 + 1) * sx) + 1), Y1 = Math.min(t.h, Math.ceil((y1 + 1) * sy) + 1);
+    return [X0, Y0, X1 - X0, Y1 - Y0];
   }
 
   _bindTex(unit, tex) {
@@ -360,9 +388,14 @@ export class IBRRenderer {
     mark("layer0");
     this._fill(t, 0);
     mark("fill0");
-    const items1 = mode === "single" ? [] : items.filter(([k]) => this.views[k].layers.reflection);
+    let items1 = mode === "single" ? [] : items.filter(([k]) => this.views[k].layers.reflection);
+    const box = items1.length ? this._betaBox(t) : null;
+    if (!box) items1 = [];
     if (items1.length) {
+      gl.enable(gl.SCISSOR_TEST);
+      gl.scissor(...box);
       this[layerFn](t, common, "reflection", items1);
+      gl.disable(gl.SCISSOR_TEST);
       mark("layer1");
       this._fill(t, 1);
       mark("fill1");
@@ -374,7 +407,7 @@ export class IBRRenderer {
     gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);  // wait for the GPU: honest frame time
     const t2 = performance.now();
     return { ms: t2 - t0, select_ms: t1 - t0, gl_ms: t2 - t1, phases, selected: sel.indices,
-      weights: sel.weights, drawn: items.map(([k]) => k), missing };
+      weights: sel.weights, drawn: items.map(([k]) => k), missing, box };
   }
 }
 
