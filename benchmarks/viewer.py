@@ -76,7 +76,8 @@ def main(args) -> int:
             page.wait_for_function("window.ibr !== undefined && (window.ibr.error || "
                                    "window.ibr.firstFrame)", timeout=300_000)
             if errors or page.evaluate("window.ibr.error || null"):
-                raise RuntimeError(f"viewer page failed: {errors or page.evaluate('window.ibr.error')}")
+                why = errors or page.evaluate("window.ibr.error")
+                raise RuntimeError(f"viewer page failed: {why}")
             res["first_frame_s"] = page.evaluate("window.ibr.loadMs") / 1e3
             res["page_open_s"] = time.perf_counter() - t1
             res["all_views_s"] = page.evaluate("window.ibr.prefetched") / 1e3

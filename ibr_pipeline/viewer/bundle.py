@@ -72,7 +72,8 @@ def webgl_shader(src: str) -> str:
 
 def webgl_shaders() -> dict[str, str]:
     from ..render import shaders
-    return {k: webgl_shader(getattr(shaders, k)) for k in ("VERTEX", "COST", "FRONT", "BLEND", "SINGLE")}
+    names = ("VERTEX", "COST", "FRONT", "BLEND", "SINGLE")
+    return {k: webgl_shader(getattr(shaders, k)) for k in names}
 
 
 def _camera_json(name: str, cam) -> dict:
@@ -136,13 +137,16 @@ def bundle_is_current(ws, out: Path) -> bool:
     return all(f.stat().st_mtime <= t for f in _sources(ws))
 
 
+def _render_views_config(ws):
+    from ..config import build_config
+    from ..stages import render_views as rv
+    return build_config(rv.RenderViewsConfig, "render_views", ws.config().get("render_views", {}))
+
+
 def render_settings(ws):
     """The RenderSettings `render_views` uses for this workspace, visibility resolved."""
-    from ..config import build_config
     from ..render.ibr import auto_visibility
-    from ..stages import render_views as rv
-    cfg = build_config(rv.RenderViewsConfig, "render_views", ws.config().get("render_views", {}))
-    s = cfg.renderer
+    s = _render_views_config(ws).renderer
     if s.visibility == "auto":
         s = replace(s, visibility=auto_visibility(ws))
     return s
@@ -150,11 +154,10 @@ def render_settings(ws):
 
 def _extra_cameras(ws) -> dict[str, list]:
     """The held-out and fly-through cameras of `render_views` (as `ibr render` renders them)."""
-    from ..config import build_config
     from ..runner import StageContext
     from ..stages import render_views as rv
-    cfg = build_config(rv.RenderViewsConfig, "render_views", ws.config().get("render_views", {}))
-    sets = rv.render_sets(StageContext(ws, "render_views", cfg, L.posed_scene(ws)))
+    sets = rv.render_sets(StageContext(ws, "render_views", _render_views_config(ws),
+                                       L.posed_scene(ws)))
     out = {}
     if "test" in sets and sets["test"]["source"] != "leave_one_out":
         out["heldout"] = [_camera_json(n, c) for n, c in sets["test"]["cameras"]]
@@ -180,10 +183,13 @@ def write_bundle(ws, out: Path | None = None, progress: bool = True) -> Path:
     for n in names:
         mesh = ws.path(L.view_file(n, L.MESH))
         if not mesh.is_file():
-            raise InputError(f"{mesh}: missing: the view has no mesh (run `ibr view_mesh {ws.root}`)")
+            raise InputError(f"{mesh}: missing: the view has no mesh "
+                             f"(run `ibr view_mesh {ws.root}`)")
     s = render_settings(ws)
     enc = scene.image_encoding
     out.parent.mkdir(parents=True, exist_ok=True)
+    for left in out.parent.glob(f".{out.name}-*"):  # staging of a run that was killed
+        shutil.rmtree(left, ignore_errors=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
     try:
         views = []

@@ -7,6 +7,7 @@ import os
 import numpy as np
 import pytest
 
+
 def chromium() -> str:
     from ibr_pipeline.viewer.browser import EXECUTABLES, chromium_path
     path = chromium_path()
@@ -57,7 +58,8 @@ class Page:
         return self
 
     def render(self, cam: dict, **opts) -> dict:
-        return self.page.evaluate("async ([c, o]) => await window.ibr.renderCamera(c, o)", [cam, opts])
+        return self.page.evaluate("async ([c, o]) => await window.ibr.renderCamera(c, o)",
+                                  [cam, opts])
 
     def canvas(self) -> np.ndarray:
         """The canvas's pixels (H, W, 3) uint8: what the page shows, at the camera's size."""

@@ -1,4 +1,4 @@
-"""The viewer's web bundle, its server and the `ibr view` / `ibr export --web` commands (no browser)."""
+"""The viewer's web bundle, its server, `ibr view` and `ibr export --web` (no browser)."""
 import http.client
 import json
 import os
@@ -13,8 +13,12 @@ from ibr_pipeline.io.images import read_image
 from ibr_pipeline.io.mesh import read_ply
 from ibr_pipeline.render import shaders
 from ibr_pipeline.render.ibr import load_view
-from ibr_pipeline.viewer.bundle import (bundle_is_current, render_settings, webgl_shader,
-                                        write_bundle)
+from ibr_pipeline.viewer.bundle import (
+    bundle_is_current,
+    render_settings,
+    webgl_shader,
+    write_bundle,
+)
 from ibr_pipeline.viewer.server import serve_in_thread
 from ibr_pipeline.workspace import Workspace
 
@@ -66,7 +70,8 @@ def test_webgl_shaders_are_the_offline_ones_with_an_es_header():
     with pytest.raises(ValueError):
         webgl_shader("#version 410\nvoid main() {}")
     with pytest.raises(ValueError):
-        webgl_shader("#version 330\nuniform sampler2D tex_rgba;\nvoid main() { texture(tex_rgba, p); }")
+        webgl_shader("#version 330\nuniform sampler2D tex_rgba;\n"
+                     "void main() { texture(tex_rgba, p); }")
 
 
 def test_bundle_is_rebuilt_when_a_source_changes(layered_ws, tmp_path):
@@ -144,7 +149,8 @@ def test_ibr_view_prints_its_url_serves_and_stops_on_ctrl_c(layered_ws, tmp_path
     ws_dir = tmp_path / "ws"
     shutil.copytree(layered_ws, ws_dir, ignore=shutil.ignore_patterns("export"))
     p = subprocess.Popen([sys.executable, "-m", "ibr_pipeline", "view", str(ws_dir), "--port", "0",
-                          "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                          "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
     try:
         lines = [p.stdout.readline(), p.stdout.readline()]
         assert "web bundle written" in lines[0]

@@ -208,5 +208,6 @@ def test_page_screenshot_shows_the_view_and_the_frame_time(layered_ws, open_view
     x0, y0 = int(canvas["x"]), int(canvas["y"])
     region = img[y0 + 5:y0 + int(canvas["height"]) - 5, x0 + 5:x0 + int(canvas["width"]) - 5]
     assert region.std() > 10, "the canvas shows a picture, not a flat colour"
-    frusta = (region[..., 0] > 200) & (region[..., 1] > 100) & (region[..., 1] < 170) & (region[..., 2] < 60)
+    r, g, b = region[..., 0], region[..., 1], region[..., 2]
+    frusta = (r > 200) & (g > 100) & (g < 170) & (b < 60)
     assert frusta.sum() > 10, "the selected views' frusta (orange) are drawn"
