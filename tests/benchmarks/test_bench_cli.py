@@ -25,7 +25,7 @@ def _exit_code(argv) -> int:
 
 def test_the_table_names_every_benchmark_once_in_order():
     assert NAMES == ["pipeline", "global_mesh", "view_depth", "reflection", "render", "dsrnet",
-                     "raytree", "real", "speed", "synth"]
+                     "raytree", "real", "speed", "viewer", "synth"]
     assert benchmark_by_name("raytree").module == "benchmarks.raytree"
     with pytest.raises(KeyError):
         benchmark_by_name("nosuch")
