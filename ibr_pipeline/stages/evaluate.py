@@ -1,6 +1,6 @@
 """Stage `evaluate`: held-out metrics, side-by-sides, a chart and the fly-through video.
 
-Reads `renders/test` (+ `test_single`, `fly`, `fly_single`) of `render_views` and the input's
+Reads `renders/test` (+ `test_single`, `fly`, `fly_single`, `tour`) of `render_views` and the input's
 ground truth. Methods compared on the same cameras:
   ours     two-layer rendering of the reconstructed representation (renders/test)
   single   the same renderer with the decomposition off (renders/test_single; ~InsideOut)
@@ -15,7 +15,8 @@ with kr > 0 from gt/test/geom; leave-one-out views: GT beta > 0, or the reflecti
 there is no GT). Temporal stability on the fly-through: mean absolute frame-to-frame change of
 ours vs the GT video, and the error of that change (flicker).
 Outputs: eval/metrics.json (`summary` = the headline numbers), eval/metrics.png (bar chart),
-eval/side_by_side/NNNN.png (ours | GT | single-layer | error ×4; display sRGB), eval/fly.mp4.
+eval/side_by_side/NNNN.png (ours | GT | single-layer | error ×4; display sRGB), eval/fly.mp4 (the
+tour set when rendered, else the fly-through).
 """
 from __future__ import annotations
 
@@ -70,7 +71,7 @@ def inputs(ctx: StageContext) -> list[str]:
     keys = [L.render_file("test", "cameras.json"), L.render_file("test", "timings.json")]
     if ctx.config.naive and ctx.ws.path(L.GLOBAL_MESH).is_file():
         keys += [L.GLOBAL_MESH, L.REGISTERED_CAMERAS]
-    for s in ("test", "test_single", "fly", "fly_single"):
+    for s in ("test", "test_single", "fly", "fly_single", "tour"):
         cams = _set_cameras(ctx, s)
         if not cams:
             continue
@@ -87,7 +88,7 @@ def outputs(ctx: StageContext) -> list[str]:
     n = len(_set_cameras(ctx, "test"))
     out = [L.EVAL_METRICS, L.EVAL_METRICS_PNG]
     out += [f"{L.SIDE_BY_SIDE}/{i:04d}.png" for i in range(n)]
-    if _set_cameras(ctx, "fly"):
+    if _set_cameras(ctx, "fly") or _set_cameras(ctx, "tour"):
         out.append(L.EVAL_FLY_MP4)
     if _energy_histories(ctx.ws):
         out.append(L.EVAL_ENERGY_PNG)
@@ -300,7 +301,11 @@ def run(ctx: StageContext) -> None:
             result["temporal"]["single"] = temporal(sframes, gt)
         for k, v in result["temporal"]["ours"].items():
             summary[f"fly_{k}"] = v
-        write_mp4(ws.path(L.EVAL_FLY_MP4), frames, fps=cfg.fps)
+    tour = _set_cameras(ctx, "tour")  # the watchable video; else the (short) fly-through
+    video = ([read_image(ws.path(L.render_file("tour", f"{i:04d}.png")), enc)
+              for i in range(len(tour))] if tour else frames if fly else [])
+    if video:
+        write_mp4(ws.path(L.EVAL_FLY_MP4), video, fps=cfg.fps)
     _chart(ws.path(L.EVAL_METRICS_PNG), methods)
     if hist := _energy_histories(ws):
         _energy_chart(ws.path(L.EVAL_ENERGY_PNG), hist)
@@ -365,4 +370,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="4", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="5", run=run, inputs=inputs, outputs=outputs)

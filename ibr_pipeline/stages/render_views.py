@@ -9,6 +9,8 @@ cameras.json format, so `evaluate` and `ibr render` know what was rendered):
   test_single  the same cameras with the single-layer baseline (decomposition off), if `baseline`
   fly          gt/flythrough_cameras.json, or a smooth path through the registered cameras
   fly_single   the fly-through with the single-layer baseline, if `baseline`
+  tour         `tour_frames` frames on a smooth path through the fly-through (else the registered)
+               cameras: the video of evaluate and the report, long enough to watch
   loo          leave-one-out renders of every capture view (`leave_one_out`; supersample trains on them)
 Single-layer rendering is used throughout when `reflection` has not run.
 """
@@ -33,6 +35,8 @@ class RenderViewsConfig(StageConfig):
     leave_one_out: bool = param(True, "also render every capture view from the others (renders/loo)")
     fly_frames: int = param(0, "render at most this many fly-through frames (0 = all; a generated "
                             "path has 48)", min=0, max=100000)
+    tour_frames: int = param(96, "frames of the tour video's smooth path (4 s at 24 fps; 0 = no "
+                             "tour)", min=0, max=100000)
     renderer: RenderSettings = param(RenderSettings(), "view selection, depth test and blending "
                                      "(§5.1)")
 
@@ -63,6 +67,11 @@ def render_sets(ctx: StageContext) -> dict[str, dict]:
     if cfg.baseline:
         for s in list(sets):
             sets[f"{s}_single"] = dict(sets[s], layers=False)
+    keys = [c for _, c in fly_list] if fly else [cams[n] for n in names]
+    if cfg.tour_frames >= 2 and len(keys) >= 2:
+        sets["tour"] = {"cameras": [(f"tour_{i:04d}", c) for i, c in
+                                    enumerate(interpolate_path(keys, cfg.tour_frames))],
+                        "exclude": [None] * cfg.tour_frames, "source": "interpolated"}
     if cfg.leave_one_out:
         sets["loo"] = loo
     return sets
@@ -110,7 +119,7 @@ def run(ctx: StageContext) -> None:
     for s, spec in sets.items():
         model = models[spec.get("layers", True)]
         frames, prev = [], None
-        sequential = s.startswith("fly")
+        sequential = s.startswith(("fly", "tour"))
         for i, ((name, cam), excl) in enumerate(tqdm(list(zip(spec["cameras"], spec["exclude"])),
                                                      desc=f"render {s}", unit="frame",
                                                      disable=not progress, leave=False)):
@@ -135,4 +144,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="render_views", help="view selection and blending into novel views (Xu §5.1)",
-              config=RenderViewsConfig, version="4", run=run, inputs=inputs, outputs=outputs)
+              config=RenderViewsConfig, version="5", run=run, inputs=inputs, outputs=outputs)
