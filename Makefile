@@ -34,7 +34,7 @@ $(STAMP): pyproject.toml requirements.lock scripts/install_system_deps.sh
 demo: install
 	$(BIN)/ibr run $(OUT)/demo --input sample_data/mirror_room --jobs $(JOBS) --set supersample.time_budget_s=0
 	$(BIN)/ibr status $(OUT)/demo
-	$(BIN)/ibr report $(OUT)/demo
+	$(BIN)/ibr report $(OUT)/demo $(if $(wildcard $(OUT)/bench/results.jsonl),--bench $(OUT)/bench)
 	@echo "demo done: open $(OUT)/demo/report/index.html; walk through it in a browser: make view"
 
 view: install

@@ -12,7 +12,7 @@ QUALITY = ("psnr", "PSNR on held-out views (dB)")
 
 
 def load(results: Path) -> list[dict]:
-    from ibr_pipeline.report import latest_results
+    from ibr_pipeline.report_sections import latest_results
     return latest_results(results)
 
 

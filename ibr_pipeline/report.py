@@ -4,14 +4,21 @@ The report only *formats* numbers that stages and benchmarks wrote to disk: ever
 `Fact` carrying the file and key it came from, and `facts.json` next to the report lists them, so a
 reader (and the test) can trace each figure to its measurement. Nothing is recomputed here.
 
-Sources, each optional (a section is left out when its files do not exist):
-  .ibr/state/<stage>[/<view>].json  per-stage status and seconds (the runner's records)
-  .ibr/runs.jsonl                   wall time of each `ibr run`
-  global/report.json                global_mesh counts, errors, timings
-  views/*/depth_report.json, views/*/mesh_report.json, views/*/layers.json   per-view reports
-  eval/metrics.json                 held-out metrics; eval/*.png side-by-sides and charts
-  renders/**/*.mp4, eval/*.mp4      fly-through video
-  bench/*.png, bench/*.jsonl        `ibr bench` charts and results (when the bench wrote here)
+Sections (report_sections.py; each left out when its files do not exist), in reading order:
+  Scene                  scene.json, global/poses.json (input, scene frame, scale)
+  Held-out accuracy      eval/metrics.json summary per method, renders/test*/timings.json ms/frame
+  Side by side           eval/side_by_side/*.png, labelled ours | ground truth | single layer | error
+  Reflections            views/*/layers.json (kept / discarded per reflector), I0, I1, beta
+                         thumbnails, reflection/planes.json candidates, eval/reflection_energy.png
+  Cameras and geometry   a top-down plan of global/cameras.json, the held-out and tour cameras over
+                         global/mesh.ply
+  Fly-through            eval/fly.mp4 (the tour render set)
+  DSRNet                 nn/train.json, nn/loss.png (loss and validation curves)
+  Time per stage         .ibr/state/<stage>[/<view>].json, .ibr/runs.jsonl
+  Speed                  this run's renderers as ms against PSNR, bench/viewer.json (`ibr bench
+                         viewer`), the charts and results.jsonl of `ibr bench` folders (--bench)
+  Appendix               every recorded key of the stage reports, in a collapsed <details>
+Pictures the report draws itself (report_figures.py) land in the report's img/.
 
 HTML: images and the video are embedded as base64 data URIs, so the file opens in a browser from
 disk, with no server and no other file. Markdown: images are copied next to it under `img/`.
@@ -26,7 +33,6 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from statistics import median
 
 from . import layout as L
 from .errors import InputError
@@ -66,8 +72,10 @@ class Report:
     """Sections of (title, blocks); a block is ('p', text) | ('table', header, rows) | ('img', path,
     caption) | ('video', path, caption). Table cells are str or Fact."""
 
-    def __init__(self, ws_root: Path):
+    def __init__(self, ws_root: Path, fig_dir: Path, bench_dirs: list[Path]):
         self.root = ws_root
+        self.fig_dir = Path(fig_dir)
+        self.bench_dirs = [Path(b) for b in bench_dirs]
         self.sections: list[tuple[str, list]] = []
         self.facts: list[Fact] = []
 
@@ -81,138 +89,6 @@ class Report:
     def add(self, title: str, blocks: list) -> None:
         if blocks:
             self.sections.append((title, blocks))
-
-
-def _read_json(path: Path):
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-
-
-def _flatten(d, prefix: str = "") -> dict:
-    out = {}
-    if isinstance(d, dict):
-        for k, v in d.items():
-            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-    elif isinstance(d, (int, float, str, bool)) or d is None:
-        out[prefix] = d
-    return out
-
-
-# --- sections --------------------------------------------------------------------------------------
-def _timings(rep: Report) -> None:
-    state = rep.root / ".ibr" / "state"
-    if not state.is_dir():
-        return
-    from .stages import STAGES
-    rows = []
-    for s in STAGES:
-        whole = state / f"{s.name}.json"
-        per_view = sorted((state / s.name).glob("*.json")) if (state / s.name).is_dir() else []
-        recs = [(p, _read_json(p)) for p in ([whole] if whole.is_file() else []) + per_view]
-        recs = [(p, r) for p, r in recs if r]
-        if not recs:
-            continue
-        ok = sum(r.get("status") == "ok" for _, r in recs)
-        secs = [r.get("seconds", 0.0) for _, r in recs]
-        total = sum(secs)
-        src = whole if whole.is_file() else state / s.name
-        rows.append([s.name, f"{ok}/{len(recs)} ok",
-                     rep.fact(round(total, 3), src, "sum(seconds)"),
-                     rep.fact(round(median(secs), 3), src, "median(seconds)")
-                     if per_view else "-"])
-    blocks = [("table", ["stage", "records", "seconds (sum)", "s/view (median)"], rows)] if rows else []
-    runs = rep.root / ".ibr" / "runs.jsonl"
-    if runs.is_file():
-        lines = [json.loads(x) for x in runs.read_text().splitlines() if x.strip()]
-        if lines:
-            last = lines[-1]
-            run_rows = [[e["stage"], e["result"], rep.fact(e["seconds"], runs, f"[-1].{e['stage']}.seconds")]
-                        for e in last["stages"]]
-            blocks += [("p", f"Last `ibr run` finished {last['finished']}:"),
-                       ("table", ["stage", "result", "wall seconds"], run_rows)]
-    rep.add("Timings", blocks)
-
-
-def _json_table(rep: Report, path: Path, title: str, skip=("config",)) -> None:
-    d = _read_json(path)
-    if not isinstance(d, dict):
-        return
-    flat = {k: v for k, v in _flatten(d).items() if not any(k.startswith(s) for s in skip)}
-    rows = [[k, rep.fact(v, path, k)] for k, v in flat.items()
-            if isinstance(v, (int, float)) and not isinstance(v, bool)]
-    rows += [[k, str(v)] for k, v in flat.items() if isinstance(v, str) and len(v) < 80]
-    if rows:
-        rep.add(title, [("p", f"From `{path.relative_to(rep.root)}`."),
-                        ("table", ["quantity", "value"], rows[:60])])
-
-
-def _per_view(rep: Report, name: str, title: str) -> None:
-    files = sorted((rep.root / "views").glob(f"*/{name}"))
-    vals: dict[str, list[float]] = {}
-    for f in files:
-        for k, v in _flatten(_read_json(f) or {}).items():
-            if isinstance(v, (int, float)) and not isinstance(v, bool):
-                vals.setdefault(k, []).append(float(v))
-    if not vals:
-        return
-    src = rep.root / "views"
-    rows = [[k, rep.fact(len(v), src, f"*/{name}:{k}:count"),
-             rep.fact(round(median(v), 6), src, f"*/{name}:{k}:median"),
-             rep.fact(round(min(v), 6), src, f"*/{name}:{k}:min"),
-             rep.fact(round(max(v), 6), src, f"*/{name}:{k}:max")] for k, v in vals.items()]
-    rep.add(title, [("p", f"Aggregated over {len(files)} views (`views/*/{name}`)."),
-                    ("table", ["field", "views", "median", "min", "max"], rows)])
-
-
-def _media(rep: Report) -> None:
-    imgs = sorted((rep.root / "eval").rglob("*.png"), key=lambda p: (len(p.parts), p)) \
-        if (rep.root / "eval").is_dir() else []
-    blocks = [("img", p, p.relative_to(rep.root / "eval").with_suffix("").as_posix()
-               .replace("_", " ")) for p in imgs[:16]]
-    vids = sorted(rep.root.glob("eval/*.mp4")) + sorted(rep.root.glob("renders/**/*.mp4"))
-    if vids:
-        blocks.append(("video", vids[0], f"fly-through ({vids[0].relative_to(rep.root)})"))
-    rep.add("Images and video", blocks)
-
-
-def latest_results(results: Path) -> list[dict]:
-    """The rows of an `ibr bench` results.jsonl, the latest per (scene, setting)."""
-    latest: dict[tuple, dict] = {}
-    for line in Path(results).read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            latest[(r.get("scene"), r.get("setting"))] = r
-    return list(latest.values())
-
-
-def _bench(rep: Report) -> None:
-    bench = rep.root / "bench"
-    results = bench / "results.jsonl"
-    if not results.is_file():
-        return
-    blocks: list = [("img", p, p.stem.replace("_", " ")) for p in sorted(bench.glob("*.png"))]
-    rows, stab = [], []
-    for r in latest_results(results):
-        m = r.get("metrics") or {}
-        key = f"{r.get('scene')}/{r.get('setting')}"
-        f = lambda v, k: "-" if v is None else rep.fact(v, results, f"{key}.{k}")  # noqa: E731
-        if r.get("group") == "stability":
-            did = r.get("crashed") or "; ".join(r.get("fallbacks") or []) or "completed"
-            stab.append([r["setting"], did, f(m.get("psnr"), "metrics.psnr")])
-        else:
-            rows.append([r["setting"], r.get("group", ""), f(r.get("preprocess_s"), "preprocess_s"),
-                         f(r.get("render_ms"), "render_ms"), f(m.get("psnr"), "metrics.psnr"),
-                         f(m.get("ssim"), "metrics.ssim"), f(m.get("flip"), "metrics.flip"),
-                         f(m.get("psnr_mask"), "metrics.psnr_mask"),
-                         f(r.get("mb_per_view"), "mb_per_view")])
-    if rows:
-        blocks.append(("table", ["setting", "group", "preprocess s", "render ms", "PSNR", "SSIM",
-                                 "FLIP", "PSNR in reflectors", "MB/view"], rows))
-    if stab:
-        blocks.append(("table", ["degradation", "what the pipeline did", "PSNR"], stab))
-    rep.add("Benchmark (ibr bench)", blocks)
 
 
 def scene_frame_line(frame: dict) -> str:
@@ -241,39 +117,37 @@ def input_line(scene: dict) -> str:
                if prepared else "") + ".")
 
 
-def build(ws_root: Path) -> Report:
+def build(ws_root: Path, fig_dir: Path, bench_dirs: list[Path] | None = None) -> Report:
+    """The report of a workspace; figures it draws land in fig_dir."""
+    from . import report_sections as S
     ws_root = Path(ws_root)
     if not (ws_root / "ibr.toml").is_file():
         raise InputError(f"{ws_root}: not a workspace (no ibr.toml)")
-    rep = Report(ws_root)
-    scene = _read_json(ws_root / "scene.json") or {}
+    for b in bench_dirs or []:
+        if not (Path(b) / "results.jsonl").is_file():
+            raise InputError(f"{b}: no results.jsonl of `ibr bench` here (make bench writes "
+                             "out/bench)")
+    rep = Report(ws_root, fig_dir, bench_dirs if bench_dirs is not None else [ws_root / "bench"])
+    scene = S.read_json(ws_root / "scene.json") or {}
     views = scene.get("views", [])
-    rep.add("Scene", [("p", f"Workspace `{ws_root}`; {len(views)} input views, "
-                            f"{len(scene.get('reflectors', []))} user-given reflector(s)."),
-                      ("p", input_line(scene))])
-    frame = _read_json(ws_root / L.POSES_REPORT)
+    blocks = [("p", f"Workspace `{ws_root}`; {len(views)} input views, "
+                    f"{len(scene.get('reflectors', []))} user-given reflector(s)."),
+              ("p", input_line(scene))]
+    frame = S.read_json(ws_root / L.POSES_REPORT)
     if isinstance(frame, dict) and "units" in frame:
         src = ws_root / L.POSES_REPORT
-        rep.add("Scene frame (poses)", [
-            ("p", scene_frame_line(frame)),
-            ("table", ["quantity", "value"],
-             [["scale (scene units per input unit)", rep.fact(frame["scale"], src, "scale")]]
-             + ([["median scene depth", rep.fact(frame["median_scene_depth"], src,
-                                                "median_scene_depth")]]
-                if frame.get("median_scene_depth") is not None else [])
-             + [[f"{k} images", rep.fact(v, src, f"counts.{k}")] for k, v in
-                frame.get("counts", {}).items()])])
-    _timings(rep)
-    _json_table(rep, ws_root / L.POSES_REPORT, "Poses (poses)",
-                skip=("config", "transform", "depth_ranges", "gt_to_scene.R"))
-    _json_table(rep, ws_root / "global" / "report.json", "Global mesh (global_mesh)")
-    _per_view(rep, L.DEPTH_REPORT, "Per-view depth refinement (view_depth)")
-    _per_view(rep, L.MESH_REPORT, "Per-view meshes (view_mesh)")
-    _per_view(rep, L.LAYERS, "Reflection layers (reflection)")
-    _json_table(rep, ws_root / "eval" / "metrics.json", "Held-out evaluation (evaluate)")
-    _json_table(rep, ws_root / "nn" / "train.json", "DSRNet training (supersample)")
-    _media(rep)
-    _bench(rep)
+        blocks += [("p", scene_frame_line(frame)),
+                   ("table", ["quantity", "value"],
+                    [["scale (scene units per input unit)", rep.fact(frame["scale"], src, "scale")]]
+                    + ([["median scene depth", rep.fact(frame["median_scene_depth"], src,
+                                                       "median_scene_depth")]]
+                       if frame.get("median_scene_depth") is not None else [])
+                    + [[f"{k} images", rep.fact(v, src, f"counts.{k}")] for k, v in
+                       frame.get("counts", {}).items()])]
+    rep.add("Scene", blocks)
+    for section in (S.summary, S.side_by_sides, S.reflections, S.plan, S.video, S.dsrnet,
+                    S.stage_timings, S.speed, S.appendix):
+        section(rep)
     return rep
 
 
@@ -289,8 +163,61 @@ def _data_uri(path: Path, mime: str) -> str:
 CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;margin:.6em 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:left}
 th{background:#f2f2f2}td.n{text-align:right;font-variant-numeric:tabular-nums}
-figure{display:inline-block;margin:.5em;vertical-align:top}figure img,video{max-width:100%}
-figcaption{font-size:.85em;color:#555}h2{border-bottom:1px solid #ddd;margin-top:1.6em}"""
+figure{display:inline-block;margin:.5em;vertical-align:top;max-width:100%}figure img,video{max-width:100%}
+figcaption{font-size:.85em;color:#555}h2{border-bottom:1px solid #ddd;margin-top:1.6em}
+.sbs{display:block}.labels{display:grid;font-size:.85em;font-weight:600;text-align:center}
+.row{display:grid;grid-template-columns:repeat(4,1fr);gap:.4em}.row figure{margin:0}
+.row img{width:100%}video{width:640px}
+details{margin:1em 0}summary{cursor:pointer;font-weight:600}code{background:#f4f4f4;padding:0 3px}"""
+
+
+def _inline(text: str) -> str:
+    """Escaped HTML of a paragraph, its `code` spans as <code> (Markdown keeps the backticks)."""
+    parts = html.escape(text).split("`")
+    if len(parts) % 2 == 0:  # an unpaired backtick stays text
+        parts[-2:] = ["`".join(parts[-2:])]
+    return "".join(f"<code>{p}</code>" if i % 2 else p for i, p in enumerate(parts))
+
+
+def _img(path: Path, alt: str) -> str:
+    return f"<img src='{_data_uri(path, 'image/png')}' alt='{html.escape(alt)}'>"
+
+
+def _html_blocks(blocks: list, out: list) -> None:
+    for b in blocks:
+        kind = b[0]
+        if kind == "p":
+            out.append("<pre>" + html.escape(b[1]) + "</pre>" if "\n" in b[1]
+                       else f"<p>{_inline(b[1])}</p>")
+        elif kind == "h":
+            out.append(f"<h3>{_inline(b[1])}</h3>")
+        elif kind == "table":
+            out.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in b[1]) + "</tr>")
+            for row in b[2]:
+                out.append("<tr>" + "".join(
+                    f"<td class='n'>{_cell(c)}</td>" if isinstance(c, Fact)
+                    else f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>")
+            out.append("</table>")
+        elif kind == "img":
+            out.append(f"<figure>{_img(b[1], b[2])}<figcaption>{_inline(b[2])}</figcaption></figure>")
+        elif kind == "sbs":  # one image of len(labels) equal panels, each labelled above
+            labels = "".join(f"<span>{html.escape(x)}</span>" for x in b[2])
+            out.append(f"<figure class='sbs'><div class='labels' style='grid-template-columns:"
+                       f"repeat({len(b[2])},1fr)'>{labels}</div>{_img(b[1], b[3])}"
+                       f"<figcaption>{_inline(b[3])}</figcaption></figure>")
+        elif kind == "row":
+            cells = "".join(f"<figure>{_img(p, label)}<figcaption>{html.escape(label)}</figcaption>"
+                            f"</figure>" for p, label in b[1])
+            out.append(f"<figure><div class='row'>{cells}</div><figcaption>{_inline(b[2])}"
+                       f"</figcaption></figure>")
+        elif kind == "video":
+            out.append(f"<figure><video controls loop muted autoplay src='"
+                       f"{_data_uri(b[1], 'video/mp4')}'></video><figcaption>"
+                       f"{_inline(b[2])}</figcaption></figure>")
+        elif kind == "details":
+            out.append(f"<details><summary>{html.escape(b[1])}</summary>")
+            _html_blocks(b[2], out)
+            out.append("</details>")
 
 
 def to_html(rep: Report) -> str:
@@ -301,28 +228,48 @@ def to_html(rep: Report) -> str:
            f"</p>"]
     for title, blocks in rep.sections:
         out.append(f"<h2>{html.escape(title)}</h2>")
-        for b in blocks:
-            if b[0] == "p":
-                out.append("<pre>" + html.escape(b[1]) + "</pre>" if "\n" in b[1]
-                           else f"<p>{html.escape(b[1])}</p>")
-            elif b[0] == "table":
-                out.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in b[1])
-                           + "</tr>")
-                for row in b[2]:
-                    out.append("<tr>" + "".join(
-                        f"<td class='n'>{_cell(c)}</td>" if isinstance(c, Fact)
-                        else f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>")
-                out.append("</table>")
-            elif b[0] == "img":
-                out.append(f"<figure><img src='{_data_uri(b[1], 'image/png')}' "
-                           f"alt='{html.escape(b[2])}'><figcaption>{html.escape(b[2])}"
-                           f"</figcaption></figure>")
-            elif b[0] == "video":
-                out.append(f"<figure><video controls loop muted autoplay src='"
-                           f"{_data_uri(b[1], 'video/mp4')}'></video><figcaption>"
-                           f"{html.escape(b[2])}</figcaption></figure>")
+        _html_blocks(blocks, out)
     out.append("</body></html>")
     return "\n".join(out)
+
+
+def _md_file(rep: Report, path: Path, img_dir: Path) -> str:
+    """A Markdown link target for path: figures drawn into img_dir as they are, workspace files
+    copied there."""
+    path = Path(path)
+    if path.parent.resolve() != img_dir.resolve():
+        rel = path.relative_to(rep.root).as_posix().replace("/", "__")
+        shutil.copyfile(path, img_dir / rel)
+        path = img_dir / rel
+    return f"{img_dir.name}/{path.name}"
+
+
+def _md_blocks(rep: Report, blocks: list, img_dir: Path, out: list) -> None:
+    for b in blocks:
+        kind = b[0]
+        if kind == "p":
+            out += [b[1], ""]
+        elif kind == "h":
+            out += [f"### {b[1]}", ""]
+        elif kind == "table":
+            out.append("| " + " | ".join(b[1]) + " |")
+            out.append("|" + "---|" * len(b[1]))
+            out += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in b[2]]
+            out.append("")
+        elif kind == "img":
+            out += [f"![{b[2]}]({_md_file(rep, b[1], img_dir)})", ""]
+        elif kind == "sbs":
+            out += [f"![{b[3]}]({_md_file(rep, b[1], img_dir)})", "",
+                    f"{' | '.join(b[2])}: {b[3]}", ""]
+        elif kind == "row":
+            out += [" ".join(f"![{label}]({_md_file(rep, p, img_dir)})" for p, label in b[1]), "",
+                    f"{' | '.join(label for _, label in b[1])}: {b[2]}", ""]
+        elif kind == "video":
+            out += [f"[{b[2]}]({_md_file(rep, b[1], img_dir)})", ""]
+        elif kind == "details":
+            out += [f"<details><summary>{b[1]}</summary>", ""]
+            _md_blocks(rep, b[2], img_dir, out)
+            out += ["</details>", ""]
 
 
 def to_markdown(rep: Report, img_dir: Path) -> str:
@@ -330,29 +277,18 @@ def to_markdown(rep: Report, img_dir: Path) -> str:
            "Every number is read from a file the pipeline wrote; `facts.json` lists each source.", ""]
     for title, blocks in rep.sections:
         out += [f"## {title}", ""]
-        for b in blocks:
-            if b[0] == "p":
-                out += [b[1], ""]
-            elif b[0] == "table":
-                out.append("| " + " | ".join(b[1]) + " |")
-                out.append("|" + "---|" * len(b[1]))
-                out += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in b[2]]
-                out.append("")
-            elif b[0] in ("img", "video"):
-                rel = b[1].relative_to(rep.root).as_posix().replace("/", "__")
-                shutil.copyfile(b[1], img_dir / rel)
-                link = f"{img_dir.name}/{rel}"
-                out += [f"![{b[2]}]({link})" if b[0] == "img" else f"[{b[2]}]({link})", ""]
+        _md_blocks(rep, blocks, img_dir, out)
     return "\n".join(out)
 
 
-def write_report(ws_root: Path, out_dir: Path | None = None) -> Path:
+def write_report(ws_root: Path, out_dir: Path | None = None,
+                 bench_dirs: list[Path] | None = None) -> Path:
     """Write index.html, README.md (+ img/) and facts.json; returns the HTML path."""
     from .workspace import atomic_path
     ws_root = Path(ws_root)
-    rep = build(ws_root)
     out_dir = Path(out_dir) if out_dir else ws_root / "report"
     img_dir = out_dir / "img"
+    rep = build(ws_root, img_dir, bench_dirs)
     img_dir.mkdir(parents=True, exist_ok=True)
     md = to_markdown(rep, img_dir)
     for name, text in (("index.html", to_html(rep)), ("README.md", md),

@@ -147,22 +147,25 @@ def stale_reasons(stage: Stage, record: dict | None, config: dict, inputs: dict[
     if changes:
         reasons.append("config changed: " + "; ".join(changes))
     old = record.get("inputs", {})
+    kinds: dict[str, list[str]] = {}  # one line per kind of change, naming the first file
     for key in sorted(set(old) | set(inputs)):
         if key not in old:
-            reasons.append(f"input added: {key}")
+            kinds.setdefault("input added", []).append(key)
         elif key not in inputs:
-            reasons.append(f"input removed: {key}")
+            kinds.setdefault("input removed", []).append(key)
         elif old[key] != inputs[key]:
-            reasons.append(f"input changed: {key}")
+            kinds.setdefault("input changed", []).append(key)
     for key, meta in record.get("outputs", {}).items():
         sha = hashes.digest(ws.path(key))
         if sha is None:
-            reasons.append(f"output missing: {key}")
+            kinds.setdefault("output missing", []).append(key)
         elif sha != meta["sha256"]:
-            reasons.append(f"output changed on disk: {key}")
+            kinds.setdefault("output changed on disk", []).append(key)
     new = [k for k in declared if k not in record.get("outputs", {})]
     if new:  # the stage now writes a file its last run did not
-        reasons.append(f"output never written: {new[0]}" + (f" (+{len(new) - 1} more)" if len(new) > 1 else ""))
+        kinds["output never written"] = new
+    reasons += [f"{kind}: {keys[0]}" + (f" (+{len(keys) - 1} more)" if len(keys) > 1 else "")
+                for kind, keys in kinds.items()]
     return reasons
 
 

@@ -36,3 +36,26 @@ def tiny_scene(tmp_path_factory):
 def sample_scene():
     """sample_data/mirror_room (24 views, 320x240, with depth/ and gt/). Read-only."""
     return Path(__file__).parent.parent / "sample_data" / "mirror_room"
+
+
+def chromium() -> str:
+    from ibr_pipeline.viewer.browser import EXECUTABLES, chromium_path
+    path = chromium_path()
+    if path:
+        return path
+    if os.environ.get("IBR_SKIP_BROWSER") == "1":
+        pytest.skip("IBR_SKIP_BROWSER=1 and no Chromium")
+    pytest.fail(f"no {' or '.join(EXECUTABLES)} on PATH: `make install` installs Debian's "
+                "chromium-headless-shell (scripts/install_system_deps.sh)")
+
+
+@pytest.fixture(scope="session")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    from ibr_pipeline.viewer.browser import launch
+    chromium()
+    with sync_playwright() as p:
+        b = launch(p)
+        yield b
+        b.close()

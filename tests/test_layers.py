@@ -17,6 +17,7 @@ LAYERS = {
     "algorithms": {"render", "raytree", "nn"},
     "synthetic": {"synthetic"},
     "orchestration": {"runner", "executors", "pipeline", "stages", "gt_workspace", "report",
+                      "report_sections", "report_figures",
                       "viewer"},
     "cli": {"cli", "commands", "__main__", "__init__"},
 }

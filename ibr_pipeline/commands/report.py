@@ -10,6 +10,9 @@ def register(sub) -> None:
                        "workspace: timings, stage reports, metrics, charts, side-by-sides, video")
     p.add_argument("workspace", type=Path, help="workspace folder")
     p.add_argument("--out", type=Path, help="output folder (default WS/report)")
+    p.add_argument("--bench", type=Path, action="append", metavar="DIR",
+                   help="an `ibr bench` output folder whose charts and results to include "
+                        "(repeatable; default WS/bench)")
     p.set_defaults(func=report_main)
 
 
@@ -17,7 +20,7 @@ def report_main(args: argparse.Namespace) -> int:
     import logging
 
     from ..report import write_report
-    path = write_report(args.workspace, args.out)
+    path = write_report(args.workspace, args.out, args.bench)
     logging.getLogger("ibr_pipeline").info("report: %s (open it in a browser; Markdown twin: %s)",
                                            path, path.with_name("README.md"))
     return 0

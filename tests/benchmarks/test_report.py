@@ -1,15 +1,26 @@
 """`ibr report`: self-contained HTML whose every number traces to a recorded file."""
 import json
 import re
-import shutil
-import subprocess
 
 import numpy as np
 import pytest
 
 from benchmarks import charts
-from ibr_pipeline import report
+from ibr_pipeline import report, report_sections
 from ibr_pipeline.cli import main
+
+
+def _bench_results(ws):
+    bench = ws / "bench"
+    bench.mkdir(exist_ok=True)
+    rows = [{"scene": "tiny", "setting": s, "group": g, "render_ms": ms, "preprocess_s": pre,
+             "mb_per_view": mb, "metrics": {"psnr": q}}
+            for s, g, ms, pre, mb, q in [("default", "grid", 30.0, 60.0, 0.5, 28.0),
+                                         ("fast", "grid", 10.0, 20.0, 0.2, 25.0),
+                                         ("slow_bad", "grid", 50.0, 90.0, 0.9, 24.0),
+                                         ("single_layer", "baseline", 25.0, 40.0, 0.4, 26.0)]]
+    (bench / "results.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    charts.draw_all(bench / "results.jsonl", bench)
 
 
 @pytest.fixture
@@ -24,16 +35,24 @@ def ws(tmp_path, sample_scene):
     v = ws / "views" / "v0"
     v.mkdir(parents=True)
     (v / "mesh_report.json").write_text(json.dumps({"vertices": 1234, "ms": 56.5}))
-    bench = ws / "bench"
-    bench.mkdir()
-    rows = [{"scene": "tiny", "setting": s, "group": g, "render_ms": ms, "preprocess_s": pre,
-             "mb_per_view": mb, "metrics": {"psnr": q}}
-            for s, g, ms, pre, mb, q in [("default", "grid", 30.0, 60.0, 0.5, 28.0),
-                                         ("fast", "grid", 10.0, 20.0, 0.2, 25.0),
-                                         ("slow_bad", "grid", 50.0, 90.0, 0.9, 24.0),
-                                         ("single_layer", "baseline", 25.0, 40.0, 0.4, 26.0)]]
-    (bench / "results.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
-    charts.draw_all(bench / "results.jsonl", bench)
+    _bench_results(ws)
+    return ws
+
+
+@pytest.fixture(scope="module")
+def full_ws(tiny_scene, tmp_path_factory):
+    """The tiny scene with ground-truth stages through reflection, then the real render_views and
+    evaluate (held-out side-by-sides, the tour video), a DSRNet training record and bench results."""
+    from ibr_pipeline.gt_workspace import write_gt_workspace
+    ws = tmp_path_factory.mktemp("report") / "ws"
+    write_gt_workspace(tiny_scene[0], ws, "reflection")
+    for stage in ("render_views", "evaluate"):
+        assert main(["-q", stage, str(ws), "--no-progress"]) == 0
+    (ws / "nn").mkdir()
+    (ws / "nn" / "train.json").write_text(json.dumps(
+        {"steps": 40, "parameters": 1000, "seconds": {"train": 3.25},
+         "validation": {"psnr": 24.5, "psnr_bilinear": 23.75}, "val_curve": [[20, 24.0], [40, 24.5]]}))
+    _bench_results(ws)
     return ws
 
 
@@ -56,7 +75,7 @@ def test_every_number_comes_from_a_recorded_file(ws):
         if src.is_file() and src.suffix == ".json" and ":" not in f["key"] and "(" not in f["key"]:
             d = json.loads(src.read_text())
             for k in f["key"].split("."):
-                d = d[k]
+                d = d[int(k)] if isinstance(d, list) else d[k]
             assert d == pytest.approx(f["value"])
     texts = {report.fmt(f["value"]) for f in facts}
     md = (html_path.parent / "README.md").read_text()
@@ -71,20 +90,64 @@ def test_every_number_comes_from_a_recorded_file(ws):
     assert "src='data:image/png;base64," in html  # charts embedded: opens with no server
 
 
-@pytest.mark.skipif(shutil.which("chromium-headless-shell") is None,
-                    reason="chromium-headless-shell not installed (make install installs it)")
-def test_report_renders_in_headless_chromium(ws, tmp_path):
+def test_the_full_report_shows_what_a_reader_needs(full_ws):
+    html_path = report.write_report(full_ws)
+    html = html_path.read_text()
+    md = (html_path.parent / "README.md").read_text()
+    for title in ("Held-out accuracy", "Held-out views, side by side", "Reflections",
+                  "Cameras and geometry", "Fly-through", "DSRNet supersampling", "Time per stage",
+                  "Speed", "Appendix: every recorded value"):
+        assert f"<h2>{title}</h2>" in html and f"## {title}" in md, title
+    assert "`" not in html  # Markdown code spans are <code> in the HTML
+    assert html.count("<details>") == 1 and "<details open" not in html  # raw keys collapsed
+    for label in report_sections.SBS_LABELS:
+        assert f"<span>{label}</span>" in html
+    img = html_path.parent / "img"
+    for name in ("plan.png", "stage_times.png", "speed_accuracy.png"):
+        assert (img / name).stat().st_size > 5000, name
+    assert list(img.glob("layers_*_beta.png")) and list(img.glob("layers_*_I1.png"))
+    # every number still traces to its file, also with list indices (per_view.0.ours.psnr)
+    facts = json.loads((html_path.parent / "facts.json").read_text())
+    per_view = [f for f in facts if f["key"].startswith("per_view.")]
+    assert per_view
+    m = json.loads((full_ws / "eval" / "metrics.json").read_text())
+    for f in per_view:
+        d = m
+        for k in f["key"].split("."):
+            d = d[int(k)] if isinstance(d, list) else d[k]
+        assert d == pytest.approx(f["value"]) and report.fmt(f["value"]) in html
+
+
+def test_report_renders_in_headless_chromium(full_ws, browser, tmp_path):
     from PIL import Image
-    html_path = report.write_report(ws)
-    shot = tmp_path / "shot.png"
-    subprocess.run(["chromium-headless-shell", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                    f"--screenshot={shot}", "--window-size=1200,4000", html_path.as_uri()],
-                   check=True, capture_output=True, timeout=120)
+    html_path = report.write_report(full_ws)
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    try:
+        page.goto(html_path.as_uri())
+        page.wait_for_function("document.querySelector('video').readyState >= 1", timeout=60_000)
+        got = page.evaluate("""() => ({
+            text: document.body.innerText,
+            duration: document.querySelector('video').duration,
+            broken: [...document.images].filter(i => !(i.complete && i.naturalWidth > 0)).length,
+            images: document.images.length,
+            appendixShown: document.querySelector('details table').checkVisibility()})""")
+        shot = tmp_path / "shot.png"
+        page.screenshot(path=str(shot), full_page=True)
+    finally:
+        page.close()
+    assert "`" not in got["text"]
+    for label in ("ours", "ground truth", "single layer", "views kept", "I1 reflection layer"):
+        assert label in got["text"], label
+    assert got["duration"] >= 3.9  # the tour, not a third of a second
+    assert got["images"] >= 10 and got["broken"] == 0
+    assert not got["appendixShown"]
     img = np.asarray(Image.open(shot).convert("RGB")).astype(int)
-    assert img.shape[0] >= 4000 * 0.9
-    # matplotlib's default blue (C0 = #1f77b4) of the chart markers is on screen: charts are visible
-    blue = (abs(img[..., 0] - 0x1F) < 30) & (abs(img[..., 1] - 0x77) < 30) & (abs(img[..., 2] - 0xB4) < 30)
-    assert blue.sum() > 50
+
+    def colour(rgb):
+        return ((abs(img[..., 0] - rgb[0]) < 25) & (abs(img[..., 1] - rgb[1]) < 25)
+                & (abs(img[..., 2] - rgb[2]) < 25)).sum()
+    assert colour((0x1F, 0x77, 0xB4)) > 50  # matplotlib C0: training cameras, chart bars
+    assert colour((0xFF, 0x7F, 0x0E)) > 50  # C1: the held-out cameras on the plan
 
 
 def test_report_of_a_non_workspace_is_a_clear_error(tmp_path, capsys):

@@ -2,33 +2,9 @@
 127.0.0.1, and Debian's headless Chromium driven by Playwright (software WebGL: SwiftShader)."""
 import base64
 import io
-import os
 
 import numpy as np
 import pytest
-
-
-def chromium() -> str:
-    from ibr_pipeline.viewer.browser import EXECUTABLES, chromium_path
-    path = chromium_path()
-    if path:
-        return path
-    if os.environ.get("IBR_SKIP_BROWSER") == "1":
-        pytest.skip("IBR_SKIP_BROWSER=1 and no Chromium")
-    pytest.fail(f"no {' or '.join(EXECUTABLES)} on PATH: `make install` installs Debian's "
-                "chromium-headless-shell (scripts/install_system_deps.sh)")
-
-
-@pytest.fixture(scope="session")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    from ibr_pipeline.viewer.browser import launch
-    chromium()
-    with sync_playwright() as p:
-        b = launch(p)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")
