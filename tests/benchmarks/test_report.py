@@ -153,3 +153,12 @@ def test_report_renders_in_headless_chromium(full_ws, browser, tmp_path):
 def test_report_of_a_non_workspace_is_a_clear_error(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 2
     assert "not a workspace" in capsys.readouterr().err
+
+
+def test_a_bench_folder_without_results_is_a_clear_error(ws, tmp_path, capsys):
+    before = sorted(p.name for p in ws.iterdir())
+    assert main(["report", str(ws), "--bench", str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err
+    assert "nope" in err and "results.jsonl" in err
+    assert sorted(p.name for p in ws.iterdir()) == before  # nothing written
+    assert main(["report", str(ws), "--bench", str(ws / "bench")]) == 0
