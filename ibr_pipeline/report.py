@@ -69,8 +69,10 @@ def fmt(v) -> str:
 
 
 class Report:
-    """Sections of (title, blocks); a block is ('p', text) | ('table', header, rows) | ('img', path,
-    caption) | ('video', path, caption). Table cells are str or Fact."""
+    """Sections of (title, blocks); a block is ('p', text) | ('h', text) | ('table', header, rows)
+    | ('img', path, caption) | ('sbs', path, column labels, caption): one image of equal panels |
+    ('row', [(path, label)], caption) | ('video', path, caption) | ('details', summary, blocks).
+    Table cells are str or Fact. fig_dir: where the report's own figures go."""
 
     def __init__(self, ws_root: Path, fig_dir: Path, bench_dirs: list[Path]):
         self.root = ws_root

@@ -36,9 +36,10 @@ def flatten(d, prefix: str = "") -> dict:
 
 def _cameras(path: Path) -> dict:
     from .scene import cameras_from_json
+    from .errors import InputError
     try:
         return cameras_from_json(path) if path.is_file() else {}
-    except Exception:  # noqa: BLE001 - a picture is left out, the report still written
+    except (InputError, OSError, ValueError):  # a picture is left out, the report still written
         return {}
 
 
@@ -125,6 +126,7 @@ def side_by_sides(rep, limit: int = 8) -> None:
 
 # --- reflections ---------------------------------------------------------------------------------
 def reflections(rep, per_reflector: int = 2) -> None:
+    import numpy as np
     root = rep.root
     scene = read_json(root / "scene.json") or {}
     enc = scene.get("image_encoding", "linear")
@@ -190,7 +192,6 @@ def reflections(rep, per_reflector: int = 2) -> None:
                         row.append((F.thumbnail(rep.fig_dir / f"layers_{view}_{Path(f).stem}.png",
                                                 _display(vdir / f, enc)), label))
                 if (vdir / L.BETA).is_file():
-                    import numpy as np
                     row.append((F.thumbnail(rep.fig_dir / f"layers_{view}_beta.png",
                                             F.colour_map(np.load(vdir / L.BETA))), "beta (0 to 1)"))
             except (OSError, ValueError):

@@ -302,10 +302,11 @@ def run(ctx: StageContext) -> None:
         for k, v in result["temporal"]["ours"].items():
             summary[f"fly_{k}"] = v
     tour = _set_cameras(ctx, "tour")  # the watchable video; else the (short) fly-through
-    video = ([read_image(ws.path(L.render_file("tour", f"{i:04d}.png")), enc)
-              for i in range(len(tour))] if tour else frames if fly else [])
-    if video:
-        write_mp4(ws.path(L.EVAL_FLY_MP4), video, fps=cfg.fps)
+    if tour:  # streamed: 96 full-size frames need not be in memory at once
+        write_mp4(ws.path(L.EVAL_FLY_MP4), (read_image(ws.path(L.render_file("tour", f"{i:04d}.png")),
+                                                       enc) for i in range(len(tour))), fps=cfg.fps)
+    elif fly:
+        write_mp4(ws.path(L.EVAL_FLY_MP4), frames, fps=cfg.fps)
     _chart(ws.path(L.EVAL_METRICS_PNG), methods)
     if hist := _energy_histories(ws):
         _energy_chart(ws.path(L.EVAL_ENERGY_PNG), hist)
