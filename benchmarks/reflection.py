@@ -36,11 +36,19 @@ def make_gt_workspace(scene: Path, ws_dir: Path, depth_noise: float = 0.0):
 
 
 def run_stage(ws, overrides: dict | None = None, force: bool = False):
+    """Stages `reflectors` and `reflection`; `overrides`: fields of either (stage_configs)."""
+    import dataclasses
+
+    from ibr_pipeline.geometry.reflection_views import stage_configs
     from ibr_pipeline.pipeline import load_configs, run, select_stages
     from ibr_pipeline.stages import STAGES
-    sel = select_stages(STAGES, only="reflection")
-    return run(STAGES, ws, load_configs(STAGES, ws, {"reflection": overrides or {}}), sel,
-               force=force, progress=False)
+    over = overrides or {}
+    tables = {}
+    for stage, cfg in zip(("reflectors", "reflection"), stage_configs(over)):
+        names = {f.name for f in dataclasses.fields(cfg)}
+        tables[stage] = {k: v for k, v in over.items() if k in names}
+    return run(STAGES, ws, load_configs(STAGES, ws, tables),
+               select_stages(STAGES, "reflectors", "reflection"), force=force, progress=False)
 
 
 def layer_accuracy(ws, scene: Path) -> dict:
@@ -153,11 +161,11 @@ class NoisyM1Loader(Loader):
 def make_loader(ws, over: dict, m1_noise: float = 0.0):
     """(config, loader) of the stage on `ws` with reflection overrides `over`; the loader's
     reflectors are the computed planes (NoisyM1Loader for `m1_noise`)."""
-    from ibr_pipeline.config import build_config
-    from ibr_pipeline.geometry.reflection_views import ReflectionConfig, compute_planes
-    cfg = build_config(ReflectionConfig, "reflection", over)
+    from ibr_pipeline.geometry.reflection_views import compute_planes, stage_configs
+    dcfg, cfg = stage_configs(over)
+    reflectors = compute_planes(Loader(ws, ws.scene(), dcfg))["reflectors"]
     loader = NoisyM1Loader(ws, ws.scene(), cfg, m1_noise)
-    loader.reflectors = compute_planes(loader)["reflectors"]
+    loader.reflectors = reflectors
     return cfg, loader
 
 
@@ -189,15 +197,14 @@ def ablation(ws, scene: Path, base: dict, rows=None, m1_noise: float = 0.0) -> l
     over the views, for each configuration row (`ABLATION`). Mirrors are exact in every row.
     Also M1's and M0's depth errors in the mask (mean |D (1 + delta) / D_true - 1|, median over
     views; M0's truth is the GT depth, which --depth-noise perturbs)."""
-    from ibr_pipeline.config import build_config
-    from ibr_pipeline.geometry.reflection_views import ReflectionConfig, decompose_reflector
+    from ibr_pipeline.geometry.reflection_views import decompose_reflector, stage_configs
     from ibr_pipeline.metrics import psnr
     from ibr_pipeline.render.oracle import GroundTruth
     gt = GroundTruth(scene)
     _, loader = make_loader(ws, base, m1_noise)
     out = []
     for label, over in rows or ABLATION:
-        cfg = build_config(ReflectionConfig, "reflection", base, over)
+        cfg = stage_configs(base, over)[1]
         opts = cfg.decompose
         forget_passes(loader)
         per: dict = {}
@@ -247,13 +254,13 @@ def timing(ws, base: dict) -> dict:
     """Seconds per view of the stage's `run` in one process, views in order (like one worker:
     the Loader cache is shared, so later views reuse the masks / mirror points of earlier ones).
     Wall and CPU (process) seconds; reflective views = those that wrote I0.png."""
-    from ibr_pipeline.config import build_config
-    from ibr_pipeline.geometry.reflection_views import ReflectionConfig
+    from ibr_pipeline.geometry.reflection_views import compute_planes, stage_configs
     from ibr_pipeline.runner import StageContext
     from ibr_pipeline.stages.common import registered_views
     from ibr_pipeline.stages.reflection import run as run_view
-    ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", base),
-                       ws.scene())
+    dcfg, cfg = stage_configs(base)
+    ws.write_json(L.PLANES, compute_planes(Loader(ws, ws.scene(), dcfg)))
+    ctx = StageContext(ws, "reflection", cfg, ws.scene())
     rows = []
     for v in registered_views(ctx):
         c0, t0 = time.process_time(), time.perf_counter()
@@ -349,14 +356,9 @@ def main(args: argparse.Namespace) -> int:
     if args.no_user_reflectors:
         over["use_user_reflectors"] = False
     if args.no_decompose:
-        from ibr_pipeline.config import build_config
-        from ibr_pipeline.geometry.reflection_views import ReflectionConfig
-        from ibr_pipeline.runner import StageContext
-        from ibr_pipeline.stages.reflection import get_planes
-        ctx = StageContext(ws, "reflection", build_config(ReflectionConfig, "reflection", over),
-                           ws.scene())
+        from ibr_pipeline.geometry.reflection_views import compute_planes, stage_configs
         c0 = time.process_time()
-        get_planes(ctx, Loader(ws, ws.scene(), ctx.config))
+        ws.write_json(L.PLANES, compute_planes(Loader(ws, ws.scene(), stage_configs(over)[0])))
         result["planes_seconds"] = time.perf_counter() - t0
         result["planes_cpu_seconds"] = time.process_time() - c0
         result["planes"] = plane_accuracy(ws, scene)

@@ -152,14 +152,12 @@ def heldout(ws, scene: Path, base: dict, neighbours: int = 2, m1_noise: float = 
     Per pair (t, k) and, as render/ibr.py re-renders, per held-out view with the neighbours'
     predictions blended per pixel by the renderer's Eq. 15 weights (`blended_*`; the unsplit
     image blended with the same weights)."""
-    from ibr_pipeline.config import build_config
     from ibr_pipeline.geometry.decompose_terms import pose_distance
-    from ibr_pipeline.geometry.reflection_views import ReflectionConfig, decompose_reflector
+    from ibr_pipeline.geometry.reflection_views import decompose_reflector
     from ibr_pipeline.render.blend import view_weights
     from ibr_pipeline.render.oracle import GroundTruth
     gt = GroundTruth(scene)
-    _, loader = make_loader(ws, base, m1_noise)
-    cfg = build_config(ReflectionConfig, "reflection", base)
+    cfg, loader = make_loader(ws, base, m1_noise)
     opts = cfg.decompose
     names = list(loader.names)
     per: dict = {}

@@ -21,6 +21,7 @@ log = logging.getLogger("ibr_pipeline.executors")
 
 class Executor:
     name = "executor"
+    jobs = 1  # local worker processes a whole-scene stage may start beside it (StageContext.jobs)
 
     def map_unordered(self, fn: Callable, argsets: Sequence[tuple]) -> Iterator[tuple]:
         raise NotImplementedError
@@ -154,6 +155,7 @@ class DaskExecutor(Executor):
                                          processes=True, dashboard_address=None)
             self.client = Client(self._cluster)
             self.name = f"dask LocalCluster ({max(1, local_workers)} workers)"
+            self.jobs = max(1, local_workers)  # the cluster's workers share this machine
         self.address = getattr(self.client.scheduler, "address", None) or scheduler or "?"
 
     def _workers(self) -> int | None:

@@ -214,7 +214,8 @@ def run(stages: Sequence[Stage], ws: Workspace, configs: dict[str, StageConfig],
     results: list[StageResult] = []
     try:
         for s in selected:
-            ctx = StageContext(ws, s.name, configs[s.name], scene_for(ws, s.name), progress=progress)
+            ctx = StageContext(ws, s.name, configs[s.name], scene_for(ws, s.name), progress=progress,
+                               jobs=executor.jobs)
             plan = plan_stage(s, ctx, hashes, force, None)
             if plan.state == "blocked":
                 log.warning("stage %-13s blocked: %s", s.name, plan.summary())

@@ -148,7 +148,7 @@ def reflections(rep, per_reflector: int = 2) -> None:
         for r in d.get("discarded", []):
             s = stats.setdefault(r["name"], {"kept": [], "dropped": [], "beta": [], "mirror": None})
             s["dropped"].append((view, str(r.get("discarded"))))
-    if not stats and not planes.get("reflectors"):
+    if not stats and not planes.get("reflectors") and not planes.get("candidates"):
         return
     source = {r["name"]: r.get("source", "?") for r in planes.get("reflectors", [])}
     vsrc = root / "views"
@@ -169,11 +169,21 @@ def reflections(rep, per_reflector: int = 2) -> None:
         blocks.append(("p", "Reasons for discarding: " + "; ".join(reasons) + "."))
     cands = planes.get("candidates") or []
     if cands:
-        blocks.append(("table", ["detected candidate", "score", "views"],
-                       [[c.get("name", "?"), rep.fact(c["score"], planes_src, f"candidates.{i}.score")
-                         if isinstance(c.get("score"), (int, float)) else "-",
-                         rep.fact(len(c.get("views", [])), planes_src, f"candidates.{i}.views:count")]
-                        for i, c in enumerate(cands)]))
+        def num(i, c, key):
+            v = (c.get("score") or {}).get(key)
+            return (rep.fact(v, planes_src, f"candidates.{i}.score.{key}")
+                    if isinstance(v, (int, float)) else "-")
+        blocks.append(("p", f"Reflector detection (stage reflectors): {len(cands)} candidate "
+                            "planes of the global mesh, each with its evidence and the reason it "
+                            "was kept or dropped (docs/REFLECTION.md, Detection)."))
+        blocks.append(("table", ["candidate", "verdict", "views", "surface-warp error",
+                                 "mirror / surface", "Eq. 3 beta", "Eq. 3 corr", "reason"],
+                       [[c.get("name", "?"), "kept" if c.get("kept") else "dropped",
+                         rep.fact(c["views"], planes_src, f"candidates.{i}.views")
+                         if isinstance(c.get("views"), int) else "-",
+                         num(i, c, "surface_error"), num(i, c, "mirror_ratio"),
+                         num(i, c, "fit_beta"), num(i, c, "fit_corr"), c.get("reason", "-")]
+                        for i, c in sorted(enumerate(cands), key=lambda ic: not ic[1].get("kept"))]))
     m = read_json(root / L.EVAL_METRICS) or {}
     gain = (m.get("summary") or {}).get("reflector_gain_db") if isinstance(m, dict) else None
     if gain is not None:

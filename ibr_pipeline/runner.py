@@ -44,6 +44,7 @@ class StageContext:
     scene: object | None = None  # scene.Scene once `ingest` has run
     progress: bool = True        # False with `ibr ... --no-progress`: the stage's own bars too
     fingerprint: str = ""
+    jobs: int = 1                # whole-scene stages: worker processes they may use (`--jobs`)
 
     def path(self, key: str) -> Path:
         return self.ws.path(key)

@@ -84,6 +84,21 @@ def _sample_np(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_REPLICATE)
 
 
+def sample_points(img: np.ndarray, pos: np.ndarray, width: int = 1024) -> np.ndarray:
+    """_sample_np at (N, 2) positions: (N, C) samples, the same values as sampling the positions
+    laid out as an image (cv2.remap's maps are 2D and limited to 32767 rows or columns, so the
+    points are laid out in rows of `width`)."""
+    pos = np.asarray(pos)
+    if pos.ndim != 2 or pos.shape[1] != 2:
+        raise ValueError(f"pos must be (N, 2), got {pos.shape}")
+    n = len(pos)
+    rows = max(1, -(-n // width))
+    grid = np.full((rows * width, 2), np.nan)
+    grid[:n] = pos
+    out = _sample_np(img, grid.reshape(rows, width, 2))
+    return out.reshape((rows * width,) + out.shape[2:])[:n]
+
+
 @dataclass
 class DataTerm:
     """Eq. 8 at one neighbour: its pixels q (in its beta), target colours I_k'(q), positions a_q

@@ -299,9 +299,12 @@ def depth_points(camera: Camera, depth: np.ndarray) -> np.ndarray:
     depth = np.asarray(depth, dtype=np.float64)
     if depth.shape != (camera.height, camera.width):
         raise ValueError(f"depth must be ({camera.height}, {camera.width}), got {depth.shape}")
-    uv = camera.pixel_grid().reshape(-1, 2)
-    X = camera.unproject(uv, np.where(depth > 0, depth, np.nan).reshape(-1))
-    return X.reshape(depth.shape + (3,))
+    valid = np.isfinite(depth) & (depth > 0)
+    out = np.full(depth.shape + (3,), np.nan)
+    if valid.any():  # only the pixels with depth: a reflector's M1 covers a few % of a view
+        v, u = np.nonzero(valid)
+        out[valid] = camera.unproject(np.stack([u, v], 1).astype(np.float64), depth[valid])
+    return out
 
 
 def sample_mesh(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose_terms import sample_bilinear, depth_consistent, project
+from .decompose_terms import _nearest, depth_consistent, project, sample_bilinear
 from .planes import mirror_matrix
 
 
@@ -46,6 +46,13 @@ def views_in_frustum(points: np.ndarray, cameras) -> list[int]:
     return out
 
 
+def _sees(depth, exclude, pos, z, tol):
+    """depth_consistent at `pos`, false where the nearest pixel is on a reflector (the view does
+    not see the point directly there): the same as testing against the depth with the
+    reflector pixels zeroed, without building that map."""
+    return depth_consistent(depth, pos, z, tol) & ~_nearest(exclude, pos, True)[0]
+
+
 def reflected_scene_colour(X1: np.ndarray, plane, views, tol: float = 0.03,
                            min_views: int = 1, max_views: int | None = None) -> np.ndarray:
     """X1: (..., 3) mirror-world points (NaN = none); views: sequence of (camera, image (H, W, 3),
@@ -68,17 +75,18 @@ def reflected_scene_colour(X1: np.ndarray, plane, views, tol: float = 0.03,
         seen = []
         for cam, _img, depth, exclude in views:
             pos, z = project(cam, S)
-            seen.append(depth_consistent(np.where(exclude, 0.0, depth), pos, z, tol).mean())
+            seen.append(_sees(depth, exclude, pos, z, tol).mean())
         best = sorted(range(len(views)), key=lambda i: -seen[i])[:max_views]
         keep = [i for i in best if seen[i] > 0] or best
         views = [views[i] for i in sorted(keep)]
     cols = []
     for cam, img, depth, exclude in views:
         pos, z = project(cam, Xr)
-        vis = depth_consistent(np.where(exclude, 0.0, depth), pos, z, tol)
+        vis = _sees(depth, exclude, pos, z, tol)
         if not vis.any():
             continue
-        s = sample_bilinear(np.asarray(img, np.float64), np.nan_to_num(pos, nan=-1.0))
+        # float32 images are interpolated in float64 all the same (numpy promotes the corners)
+        s = sample_bilinear(np.asarray(img), np.nan_to_num(pos, nan=-1.0))
         cols.append(np.where(vis[:, None], s, np.nan))
     if cols:
         st = np.stack(cols)

@@ -13,25 +13,46 @@ reflection_prior.py; docs/REFLECTION.md explains the choices.
 """
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass
 
 from .. import layout as L
 from ..config import StageConfig, param
-from ..errors import InputError
-from ..workspace import file_sha256
+from ..errors import ConfigError, InputError
 from .decompose import DecomposeOptions
 
 
 @dataclass(frozen=True)
-class ReflectionConfig(StageConfig):
+class ReflectorViewsConfig(StageConfig):
+    """What a `Loader` reads views with: shared by the `reflectors` stage (detection) and the
+    `reflection` stage (decomposition), each from its own table, so detection may run at its own
+    working resolution."""
+
+    work_scale: float = param(1.0, "working resolution as a fraction of the image size (demo budget; "
+                              "1.0 = full quality)",
+                              min=0.1, max=1.0)
+    min_mask_pixels: int = param(100, "smaller reflector masks (at working size) are ignored",
+                                 min=1, max=10**7)
+    min_gap: float = param(0.03, "M1: reflected-ray hits closer than this to the plane (noise of a "
+                           "fused G) are skipped (scene-frame units: docs/DESIGN.md)",
+                           min=0.0, max=1.0)
+    prior_tol: float = param(0.03, "depth tolerance (x depth) of the prior's visibility test",
+                             min=1e-4, max=1.0)
+    prior_views: int = param(16, "the reflected-scene colour prior is the median over at most "
+                             "this many views: those that see most of the reflected points",
+                             min=1, max=10000)
+
+
+@dataclass(frozen=True)
+class ReflectorsConfig(ReflectorViewsConfig):
+    """Stage `reflectors`: which planes are reflectors (user-given + detected)."""
+
     use_user_reflectors: bool = param(True, "use input/reflectors.json planes (the paper's UI)")
     detect: str = param("auto", "detect reflective planes of G by the multi-view consistency cue: "
                         "'auto' = only when no input/reflectors.json is given (or it is not used), "
                         "'on' = always (user planes win on overlap), 'off' = never",
                         choices=("auto", "on", "off"))
-    ransac_distance: float = param(0.008, "RANSAC inlier distance for planes of G (m)", min=1e-4, max=0.5)
+    ransac_distance: float = param(0.008, "RANSAC inlier distance for planes of G (scene-frame units)",
+                                   min=1e-4, max=0.5)
     max_planes: int = param(30, "RANSAC planes extracted from G (detection candidates)", min=1, max=500)
     detect_threshold: float = param(0.02, "median surface-warp error above which a plane is a "
                                     "reflector (linear intensity)", min=1e-4, max=1.0)
@@ -39,23 +60,22 @@ class ReflectionConfig(StageConfig):
                                "(reflector_detect.reflectance_cue) is at least this, with "
                                "correlation >= detect_corr, is a reflector (weak reflectors); "
                                "0 = off", min=0.0, max=1.0)
-    detect_corr: float = param(0.25, "see detect_beta", min=0.0, max=1.0)
+    detect_corr: float = param(0.4, "see detect_beta (synthetic reflectors fit 0.51-0.88, diffuse "
+                               "planes of a real capture up to 0.33: docs/REFLECTION.md)",
+                               min=0.0, max=1.0)
     detect_min_pairs: int = param(4, "view pairs a detected reflector must be scored on",
                                   min=1, max=1000)
     mirror_ratio: float = param(0.5, "mirror-warp / surface-warp error below which a detected "
                                 "reflector is a mirror (beta = 1, I0 = 0)", min=0.0, max=10.0)
-    work_scale: float = param(1.0, "working resolution as a fraction of the image size (demo budget; "
-                              "1.0 = full quality)",
-                              min=0.1, max=1.0)
-    min_mask_pixels: int = param(100, "smaller reflector masks (at working size) are ignored",
-                                 min=1, max=10**7)
-    min_gap: float = param(0.03, "M1: reflected-ray hits closer than this to the plane (noise of a "
-                           "fused G) are skipped (m)", min=0.0, max=1.0)
-    prior_tol: float = param(0.03, "depth tolerance (x depth) of the prior's visibility test",
-                             min=1e-4, max=1.0)
-    prior_views: int = param(16, "the reflected-scene colour prior is the median over at most "
-                             "this many views: those that see most of the reflected points",
-                             min=1, max=10000)
+    detect_explained: bool = param(True, "a surface-warp error above detect_threshold makes a "
+                                   "reflector only when a reflection explains it (mirror warp "
+                                   "below mirror_ratio, or the Eq. 3 fit); false: the error alone")
+
+
+@dataclass(frozen=True)
+class ReflectionConfig(ReflectorViewsConfig):
+    """Stage `reflection`: the per-view two-layer decomposition of the planes `reflectors` wrote."""
+
     mesh_step: int = param(2, "M1 grid mesh: one vertex every N working pixels", min=1, max=64)
     m1_simplify: bool = param(True, "quadric-simplify M1 like the per-view surface mesh (§4.2.3, "
                               "view_mesh's adaptive target): flat reflected walls need few "
@@ -69,6 +89,25 @@ class ReflectionConfig(StageConfig):
     decompose: DecomposeOptions = param(DecomposeOptions(), "the two-layer decomposition (§4.3)")
 
 
+def stage_configs(*layers: dict) -> tuple["ReflectorsConfig", "ReflectionConfig"]:
+    """Both stages' configs from layers of overrides applied in turn (benchmarks, tests), each
+    field to the stage that has it, the Loader's shared fields to both. Validated; a field
+    neither stage has is a ConfigError naming it."""
+    import dataclasses
+
+    from ..config import build_config
+    a = {f.name for f in dataclasses.fields(ReflectorsConfig)}
+    b = {f.name for f in dataclasses.fields(ReflectionConfig)}
+    for layer in layers:
+        for k in layer:
+            if k not in a | b:
+                raise ConfigError(f"reflection.{k}", "no such field in stage reflectors or reflection")
+    return (build_config(ReflectorsConfig, "reflectors", *({k: v for k, v in d.items() if k in a}
+                                                          for d in layers)),
+            build_config(ReflectionConfig, "reflection", *({k: v for k, v in d.items() if k in b}
+                                                          for d in layers)))
+
+
 # --- loading ------------------------------------------------------------------------------------
 class Loader:
     """Reads views at working resolution and builds ViewGeoms; caches within one process.
@@ -80,7 +119,7 @@ class Loader:
 
     GEOM_CACHE = 16  # full ViewGeoms kept: a view + its <= 6 neighbours, with room to spare
 
-    def __init__(self, ws, scene, cfg: "ReflectionConfig"):
+    def __init__(self, ws, scene, cfg: "ReflectorViewsConfig"):
         from collections import OrderedDict
 
         from ..io.mesh import read_ply
@@ -145,15 +184,22 @@ class Loader:
             self._masks[key] = self._mask(name, refl)
         return self._masks[key]
 
-    def prior(self, name, refl, reflectors):
+    def forget(self, refl_name: str) -> None:
+        """Drop every cached mask, footprint and ViewGeom of reflector `refl_name`."""
+        for cache in (self._masks, self._fp, self._full):
+            for key in [k for k in cache if k[1] == refl_name]:
+                del cache[key]
+
+    def prior(self, name, refl, reflectors, geom=None):
         """beta * reflected-scene colour (H, W, 3), NaN where unobserved (reflection_prior.py),
         from the views whose frustum holds some of the reflected points (the others cannot see
-        them: their images and masks are not needed), at most `prior_views` of them."""
+        them: their images and masks are not needed), at most `prior_views` of them. `geom`:
+        the view's ViewGeom for `refl` when the caller holds it."""
         import numpy as np
 
         from .reflection_prior import (reflected_points, reflected_scene_colour, sample_points,
                                        views_in_frustum)
-        g = self.geom(name, refl)
+        g = geom if geom is not None else self.geom(name, refl)
         X1 = np.where(g.mask[..., None], g.X1, np.nan)
         Xr, _ = reflected_points(X1, refl["plane"])
         views = []
@@ -196,10 +242,12 @@ class Loader:
             self._fp[key] = Footprint(name, wc, m, D1.astype(np.float32))
         return self._fp[key]
 
-    def geom(self, name, refl):
+    def geom(self, name, refl, masked: bool = False):
         """The full ViewGeom (LRU-cached). M1's points are rebuilt from the footprint's depth:
-        `mirror_points` puts every mirror-world point on its pixel's camera ray."""
-        key = (name, refl["name"])
+        `mirror_points` puts every mirror-world point on its pixel's camera ray. `masked`: the
+        surface points X0 only inside the reflector mask (NaN elsewhere), all that detection
+        reads of them."""
+        key = (name, refl["name"]) + (("masked",) if masked else ())
         if key in self._full:
             self._full.move_to_end(key)
             return self._full[key]
@@ -210,8 +258,8 @@ class Loader:
         _, _, wc, wi, wd = self.raw(name)
         fp = self.footprint(name, refl)
         D1 = fp.D1.astype(np.float64)
-        g = ViewGeom(name, wc, wi.astype(np.float64), wd, fp.mask, depth_points(wc, wd),
-                     depth_points(wc, D1), D1)
+        X0 = depth_points(wc, np.where(fp.mask, wd, 0.0) if masked else wd)
+        g = ViewGeom(name, wc, wi.astype(np.float64), wd, fp.mask, X0, depth_points(wc, D1), D1)
         self._full[key] = g
         while len(self._full) > self.GEOM_CACHE:
             self._full.popitem(last=False)
@@ -240,23 +288,7 @@ def user_reflectors_key(ws) -> list[str]:
     return [L.SCENE_REFLECTORS] if ws.exists(L.USER_REFLECTORS) else []
 
 
-def planes_fingerprint(ws, scene, cfg: "ReflectionConfig") -> str:
-    """What the reflector planes are computed from (compute_planes)."""
-    h = hashlib.sha256()
-    for key in [L.REGISTERED_CAMERAS, L.GLOBAL_MESH] + user_reflectors_key(ws):
-        h.update(key.encode() + file_sha256(ws.path(key)).encode())
-    h.update(json.dumps([cfg.use_user_reflectors, detect_enabled(ws, cfg), cfg.detect_min_pairs,
-                         cfg.min_gap, cfg.ransac_distance,
-                         cfg.detect_threshold, cfg.mirror_ratio, cfg.work_scale,
-                         cfg.detect_beta, cfg.detect_corr,
-                         cfg.min_mask_pixels]).encode())
-    if detect_enabled(ws, cfg):
-        for v in registered_views(ws, scene):
-            h.update(file_sha256(ws.path(ws.view_file(v, L.DEPTH))).encode())
-    return h.hexdigest()[:16]
-
-
-def detect_enabled(ws, cfg: "ReflectionConfig") -> bool:
+def detect_enabled(ws, cfg: "ReflectorsConfig") -> bool:
     """`detect`: 'on' / 'off', or 'auto' = detect only when no user reflectors are used."""
     if cfg.detect == "auto":
         return not (cfg.use_user_reflectors and ws.exists(L.USER_REFLECTORS))
@@ -272,12 +304,70 @@ def _same_plane(a, b, angle_deg=5.0, offset=0.05) -> bool:
     return cos > np.cos(np.radians(angle_deg)) and abs(a[3] - b[3]) < offset
 
 
-def compute_planes(loader: Loader) -> dict:
-    """User reflectors + planes of G detected by the multi-view cue (user ones win on overlap)."""
+def plane_candidates(loader: Loader) -> list[dict]:
+    """The planar pieces of G (RANSAC on an area-proportional sample), normals towards the
+    cameras: what detection scores."""
     import numpy as np
 
-    from .planes import ransac_planes
-    from .reflector_detect import is_reflective, reflectance_cue, score_candidate
+    from .planes import ransac_planes, sample_mesh
+    cfg, G = loader.cfg, loader.G
+    V, F = G.vertices.astype(np.float64), np.asarray(G.faces)
+    area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                axis=1).sum()
+    pts = sample_mesh(V, F, int(min(200000, max(20000, area * 2000))), seed=0)
+    centres = np.array([loader.cams[v].center for v in loader.names])
+    out = []
+    for i, c in enumerate(ransac_planes(pts, distance=cfg.ransac_distance, seed=0,
+                                        max_planes=cfg.max_planes, min_points=200)):
+        pl = np.asarray(c["plane"])
+        if np.median(centres @ pl[:3] + pl[3]) < 0:
+            pl = -pl
+        out.append({"name": f"detected_{i}", "plane": [float(x) for x in pl],
+                    "polygon": c["polygon"].tolist(), "beta": None, "masks": {}})
+    return out
+
+
+def score_plane(loader: Loader, cand: dict) -> dict:
+    """One candidate's evidence (multi-view warp errors, Eq. 3 fit) and verdict: the candidate
+    with `score`, `views`, `kept`, `reason` and, when kept, `beta` / `source`. The loader's
+    caches of this candidate are dropped afterwards (each is scored once)."""
+    import numpy as np
+
+    from .reflector_detect import decision, reflectance_cue, score_candidate
+    cfg = loader.cfg
+    cand = dict(cand)
+    try:
+        views = [loader.geom(v, cand, masked=True) for v in loader.names  # mask first (cheap)
+                 if loader.mask(v, cand).sum() >= cfg.min_mask_pixels]
+        score = score_candidate(views) if len(views) >= 2 else {"surface_error": None, "pairs": 0}
+        # the Eq. 3 fit (weak reflectors) only where the pair count lets it decide
+        if len(views) >= 2 and cfg.detect_beta > 0 and score.get("pairs", 0) >= cfg.detect_min_pairs:
+            cols = {g.name: loader.prior(g.name, dict(cand, beta=1.0), [cand], geom=g)
+                    for g in views}
+            score.update({f"fit_{k}": v for k, v in reflectance_cue(views, cols).items()})
+    finally:
+        loader.forget(cand["name"])
+    kept, reason = decision(score, cfg.detect_threshold, cfg.detect_min_pairs,
+                            cfg.detect_beta or None, cfg.detect_corr,
+                            cfg.mirror_ratio if cfg.detect_explained else None)
+    if len(views) < 2:
+        reason = f"seen by {len(views)} view(s) with >= {cfg.min_mask_pixels} mask pixels, 2 needed"
+    cand.update(score=score, views=len(views), kept=kept, reason=reason)
+    if kept:
+        if score.get("mirror_ratio") is not None and score["mirror_ratio"] < cfg.mirror_ratio:
+            cand["beta"] = 1.0  # a mirror (§4.3.3 special case)
+            cand["reason"] += "; a mirror"
+        elif (score.get("fit_beta") or 0) > 0:  # the fitted reflectance (Eq. 3)
+            cand["beta"] = round(float(np.clip(score["fit_beta"], 0.01, 0.99)), 4)
+        cand["source"] = "detected"
+    return cand
+
+
+def compute_planes(loader: Loader, score_all=None) -> dict:
+    """User reflectors + planes of G detected by the multi-view cue (user ones win on overlap).
+    `score_all(loader, candidates)` -> the scored candidates in order (`score_plane` of each;
+    the `reflectors` stage maps it over worker processes); default: one after the other here.
+    Each candidate is scored on its own, so the result does not depend on how they are mapped."""
     ws, cfg = loader.ws, loader.cfg
     user = []
     if cfg.use_user_reflectors and ws.exists(L.USER_REFLECTORS):
@@ -285,47 +375,21 @@ def compute_planes(loader: Loader) -> dict:
             d = r.to_dict()
             d["source"] = "user"
             user.append(d)
-    detected, candidates = [], []
+    scored: list = []
     if detect_enabled(ws, cfg):
-        from .planes import sample_mesh
-        G = loader.G
-        V, F = G.vertices.astype(np.float64), np.asarray(G.faces)
-        area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
-                                    axis=1).sum()
-        pts = sample_mesh(V, F, int(min(200000, max(20000, area * 2000))), seed=0)
-        centres = np.array([loader.cams[v].center for v in loader.names])
-        for i, c in enumerate(ransac_planes(pts, distance=cfg.ransac_distance, seed=0,
-                                            max_planes=cfg.max_planes, min_points=200)):
-            pl = np.asarray(c["plane"])
-            if np.median(centres @ pl[:3] + pl[3]) < 0:  # orient n towards the cameras
-                pl = -pl
-            cand = {"name": f"detected_{i}", "plane": [float(x) for x in pl],
-                    "polygon": c["polygon"].tolist(), "beta": None, "masks": {}}
-            views = []
-            for v in loader.names:  # mask first (cheap); mirror points only where seen
-                if loader.mask(v, cand).sum() >= cfg.min_mask_pixels:
-                    views.append(loader.geom(v, cand))
-            score = score_candidate(views) if len(views) >= 2 else {"surface_error": None}
-            if len(views) >= 2 and cfg.detect_beta > 0:  # Eq. 3 fit (weak reflectors)
-                cols = {g.name: loader.prior(g.name, dict(cand, beta=1.0), [cand]) for g in views}
-                score.update({f"fit_{k}": v for k, v in reflectance_cue(views, cols).items()})
-            cand["score"] = score
-            cand["views"] = len(views)
-            candidates.append({k: cand[k] for k in ("name", "plane", "score", "views")})
-            if is_reflective(score, cfg.detect_threshold, cfg.detect_min_pairs,
-                             cfg.detect_beta or None, cfg.detect_corr):
-                if score.get("mirror_ratio") is not None and score["mirror_ratio"] < cfg.mirror_ratio:
-                    cand["beta"] = 1.0  # a mirror (§4.3.3 special case)
-                elif (score.get("fit_beta") or 0) > 0:  # the fitted reflectance (Eq. 3)
-                    cand["beta"] = round(float(np.clip(score["fit_beta"], 0.01, 0.99)), 4)
-                cand["source"] = "detected"
-                detected.append(cand)
+        cands = plane_candidates(loader)
+        scored = (score_all(loader, cands) if score_all is not None
+                  else [score_plane(loader, c) for c in cands])
     merged = list(user)  # user planes win; among detections the best-supported piece wins
-    for d in sorted(detected, key=lambda d: -(d["score"].get("pairs") or 0)):
-        if not any(_same_plane(d["plane"], u["plane"]) for u in merged):
+    for d in sorted((c for c in scored if c["kept"]), key=lambda d: -(d["score"].get("pairs") or 0)):
+        same = next((u["name"] for u in merged if _same_plane(d["plane"], u["plane"])), None)
+        if same is None:
             merged.append(d)
-    return {"format": "ibr_pipeline.reflectors/1", "reflectors": merged, "candidates": candidates,
-            "fingerprint": planes_fingerprint(ws, loader.scene_manifest, cfg)}
+        else:
+            d["kept"], d["reason"] = False, f"{d['reason']}; same plane as {same}"
+    keys = ("name", "plane", "score", "views", "kept", "reason")
+    return {"format": "ibr_pipeline.reflectors/1", "reflectors": merged,
+            "candidates": [{k: c[k] for k in keys} for c in scored]}
 
 
 # --- one view, one reflector -------------------------------------------------------------------

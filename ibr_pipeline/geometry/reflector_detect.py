@@ -22,25 +22,28 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose_terms import ViewGeom, _nearest, _sample_np, depth_consistent, pose_distance, project
+from .decompose_terms import (ViewGeom, _nearest, depth_consistent, pose_distance, project,
+                             sample_points)
 
 
 def warp_errors(ref: ViewGeom, nb: ViewGeom, tol: float = 0.05) -> tuple[float, float, int]:
     """(median |I_k - I_k'(w(u, M0))|, median |I_k - I_k'(w(u, M1))|, pixel count) over the
-    reference's mask pixels visible in nb under both warps."""
+    reference's mask pixels visible in nb under both warps. Only those pixels are projected: the
+    rest of ref.X0 / ref.X1 is not read."""
     sel = ref.mask & (ref.D1 > 0)
     if not sel.any():
         return np.nan, np.nan, 0
-    p0, z0 = project(nb.camera, ref.X0)
-    p1, z1 = project(nb.camera, ref.X1)
-    v0 = depth_consistent(nb.depth, p0, z0, tol) & sel
-    v1 = depth_consistent(np.where(nb.mask, nb.D1, 0.0), p1, z1, tol) & sel
+    p0, z0 = project(nb.camera, ref.X0[sel])
+    p1, z1 = project(nb.camera, ref.X1[sel])
+    v0 = depth_consistent(nb.depth, p0, z0, tol)
+    v1 = depth_consistent(np.where(nb.mask, nb.D1, 0.0), p1, z1, tol)
     both = v0 & v1
     n = int(both.sum())
     if n < 20:
         return np.nan, np.nan, n
-    e0 = np.abs(_sample_np(nb.image, p0) - ref.image).mean(2)[both]
-    e1 = np.abs(_sample_np(nb.image, p1) - ref.image).mean(2)[both]
+    img = ref.image[sel]
+    e0 = np.abs(sample_points(nb.image, p0) - img).mean(1)[both]
+    e1 = np.abs(sample_points(nb.image, p1) - img).mean(1)[both]
     return float(np.median(e0)), float(np.median(e1)), n
 
 
@@ -65,19 +68,46 @@ def score_candidate(views: list[ViewGeom], neighbours: int = 2, tol: float = 0.0
             "pairs": counts}
 
 
-def is_reflective(score: dict, threshold: float, min_pairs: int = 1, min_beta: float | None = None,
-                  min_corr: float = 0.25) -> bool:
-    """A plane scored on at least `min_pairs` view pairs (one or two pairs are too weak: a wall at
-    the edge of two views with depth errors scored like a reflector on the real workspace) is a
-    reflector when its surface warp leaves a median error above `threshold`, or (`min_beta` given)
-    when the Eq. 3 fit of `reflectance_cue` (keys fit_beta, fit_corr) gives beta >= min_beta with
-    a correlation >= min_corr."""
-    if score.get("pairs", 0) < min_pairs:
-        return False
-    if score.get("surface_error") is not None and score["surface_error"] > threshold:
-        return True
+def is_reflective(score: dict, threshold: float, min_pairs: int, min_beta: float | None,
+                  min_corr: float, mirror_ratio: float | None = None) -> bool:
+    """`decision(...)`'s verdict alone."""
+    return decision(score, threshold, min_pairs, min_beta, min_corr, mirror_ratio)[0]
+
+
+def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | None,
+             min_corr: float, mirror_ratio: float | None = None) -> tuple[bool, str]:
+    """(is a reflector, why) from `score_candidate` (+ `reflectance_cue` as fit_beta, fit_corr).
+
+    A plane scored on fewer than `min_pairs` view pairs is not one (one or two pairs are too weak:
+    a wall at the edge of two views with depth errors scored like a reflector). Otherwise it is a
+    reflector when (a) the Eq. 3 fit gives beta >= min_beta with correlation >= min_corr
+    (`min_beta` None: cue off), or (b) its surface warp leaves a median error above `threshold`
+    and, with `mirror_ratio` given, a reflection explains that error: the mirror warp does better
+    (mirror/surface error < mirror_ratio). An error that neither the mirror warp nor the Eq. 3
+    fit explains is view-inconsistency of another kind -- on real captures, wrong geometry at a
+    depth edge or a light fixture -- and is reported as such. `mirror_ratio` None: the error alone
+    decides (b)."""
+    pairs = score.get("pairs", 0) or 0
+    if pairs < min_pairs:
+        return False, f"scored on {pairs} view pair(s), {min_pairs} needed"
+    e, r = score.get("surface_error"), score.get("mirror_ratio")
     b, c = score.get("fit_beta"), score.get("fit_corr")
-    return min_beta is not None and b is not None and c is not None and b >= min_beta and c >= min_corr
+    fitted = min_beta is not None and b is not None and c is not None and b >= min_beta and c >= min_corr
+    err = "no surface-warp error" if e is None else f"surface-warp error {e:.4f}"
+    if fitted:
+        return True, (f"Eq. 3 fit beta {b:.3f} >= {min_beta:g} with correlation {c:.2f} >= "
+                      f"{min_corr:g} ({pairs} view pairs; {err})")
+    fit = ("" if min_beta is None else "; no Eq. 3 fit" if b is None or c is None
+           else f"; Eq. 3 fit beta {b:.3f} / correlation {c:.2f} below {min_beta:g} / {min_corr:g}")
+    if e is None or e <= threshold:
+        return False, (f"{err} <= {threshold:g}" if e is not None else err) + fit
+    if mirror_ratio is None:
+        return True, f"{err} > {threshold:g} on {pairs} view pairs"
+    if r is not None and r < mirror_ratio:
+        return True, (f"{err} > {threshold:g} on {pairs} view pairs, explained by the mirror warp "
+                      f"(mirror/surface error {r:.2f} < {mirror_ratio:g})")
+    ratio = "no mirror warp" if r is None else f"mirror/surface error {r:.2f} >= {mirror_ratio:g}"
+    return False, f"{err} > {threshold:g} but no reflection explains it ({ratio}{fit})"
 
 
 def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, tol: float = 0.05,
@@ -93,21 +123,26 @@ def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, t
         sel = v.mask & (v.D1 > 0) & np.all(np.isfinite(Cv), axis=2) & ~np.any(v.image >= saturation, axis=2)
         others = sorted((o for o in views if o is not v and o.name in colours and o.mask.sum() >= 50),
                         key=lambda o: pose_distance(v.camera, o.camera))[:neighbours]
+        X0, Iv, Cs = v.X0[sel], v.image[sel], Cv[sel]  # the selected pixels only, in raster order
         for o in others:
-            p0, z0 = project(o.camera, v.X0)
-            ok = sel & depth_consistent(o.depth, p0, z0, tol) & _nearest(o.mask, p0, False)[0]
+            p0, z0 = project(o.camera, X0)
+            ok = depth_consistent(o.depth, p0, z0, tol) & _nearest(o.mask, p0, False)[0]
             Co = _nearest(colours[o.name], p0, np.nan)[0]
-            Io = _sample_np(o.image, p0)
-            ok &= np.all(np.isfinite(Co), axis=2) & ~np.any(Io >= saturation, axis=2)
+            Io = sample_points(o.image, p0)
+            ok &= np.all(np.isfinite(Co), axis=1) & ~np.any(Io >= saturation, axis=1)
             if ok.sum() < 20:
                 continue
-            dI.append((v.image - Io)[ok].reshape(-1))
-            dC.append((Cv - Co)[ok].reshape(-1))
+            dI.append((Iv - Io)[ok].reshape(-1))
+            dC.append((Cs - Co)[ok].reshape(-1))
     if not dI:
         return {"beta": None, "corr": None, "pixels": 0}
     dI, dC = np.concatenate(dI), np.concatenate(dC)
-    cc = float(dC @ dC)
+
+    def dot(a, b):  # numpy's pairwise sum, not BLAS: the same bits whatever the thread count
+        return float(np.sum(a * b))
+    cc = dot(dC, dC)
     if cc < 1e-9:
         return {"beta": None, "corr": None, "pixels": len(dI) // 3}
-    corr = float(dI @ dC / np.sqrt(max(float(dI @ dI), 1e-30) * cc))
-    return {"beta": float(dI @ dC / cc), "corr": corr, "pixels": len(dI) // 3}
+    ic = dot(dI, dC)
+    corr = ic / float(np.sqrt(max(dot(dI, dI), 1e-30) * cc))
+    return {"beta": ic / cc, "corr": corr, "pixels": len(dI) // 3}

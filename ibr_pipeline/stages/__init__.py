@@ -9,8 +9,8 @@ The files each stage reads and writes are listed in docs/PIPELINE.md.
 from __future__ import annotations
 
 from ..runner import Stage
-from . import (evaluate, global_mesh, ingest, poses, reflection, render_views, supersample,
-               view_depth, view_mesh)
+from . import (evaluate, global_mesh, ingest, poses, reflection, reflectors, render_views,
+               supersample, view_depth, view_mesh)
 
 STAGES: tuple[Stage, ...] = (
     ingest.STAGE,
@@ -18,6 +18,7 @@ STAGES: tuple[Stage, ...] = (
     global_mesh.STAGE,
     view_depth.STAGE,
     view_mesh.STAGE,
+    reflectors.STAGE,
     reflection.STAGE,
     render_views.STAGE,
     supersample.STAGE,

@@ -52,7 +52,7 @@ def test_reflectance_cue_recovers_beta_and_rejects_a_diffuse_plane():
         assert abs(cue["beta"] - beta) < 0.03 and cue["corr"] > 0.8, cue
         score = {"surface_error": 0.005, "pairs": 4, **{f"fit_{k}": v for k, v in cue.items()}}
         assert is_reflective(score, 0.02, 4, 0.05, 0.25)
-        assert not is_reflective(score, 0.02, 4, None)  # the surface-warp error alone misses it
+        assert not is_reflective(score, 0.02, 4, None, 0.25)  # the surface-warp error alone misses it
     views, cols = _scene(0.0)  # a diffuse floor: the view differences do not follow C
     cue = reflectance_cue(views, cols)
     assert abs(cue["beta"]) < 0.02 and abs(cue["corr"]) < 0.2, cue
@@ -117,3 +117,22 @@ def test_blend_predictions_normalises_over_valid_views():
     assert np.allclose(got[:30], 0.2) and np.allclose(got[70:], 0.6)
     assert np.allclose(got[30:70], (3 * 0.2 + 0.6) / 4)
     assert np.allclose(bl["unsplit"], bl["layers"])
+
+
+def test_decision_needs_a_reflection_to_explain_the_surface_warp_error():
+    """A plane whose surface warp fails is a reflector only when the mirror warp does better or
+    the Eq. 3 fit holds (wrong geometry also breaks the surface warp); every verdict has a reason."""
+    from ibr_pipeline.geometry.reflector_detect import decision
+    base = {"surface_error": 0.03, "pairs": 10, "fit_beta": 0.01, "fit_corr": 0.05}
+    ok, why = decision(dict(base, mirror_ratio=2.0), 0.02, 4, 0.05, 0.4, 0.5)
+    assert not ok and "no reflection explains" in why
+    ok, why = decision(dict(base, mirror_ratio=0.3), 0.02, 4, 0.05, 0.4, 0.5)
+    assert ok and "mirror warp" in why
+    assert decision(dict(base, mirror_ratio=2.0), 0.02, 4, 0.05, 0.4, None)[0]  # the error alone
+    ok, why = decision(dict(base, mirror_ratio=2.0, fit_beta=0.2, fit_corr=0.6), 0.02, 4, 0.05, 0.4, 0.5)
+    assert ok and "Eq. 3 fit" in why
+    ok, why = decision(dict(base, pairs=3, mirror_ratio=0.1), 0.02, 4, 0.05, 0.4, 0.5)
+    assert not ok and "4 needed" in why
+    ok, why = decision(dict(base, surface_error=0.01, mirror_ratio=0.1), 0.02, 4, 0.05, 0.4, 0.5)
+    assert not ok and "<= 0.02" in why
+
