@@ -30,20 +30,80 @@ class ViewLayers:
     m0_vertices: np.ndarray | None
 
 
+def predict_views(loader: Loader, view: str, refl: dict, r: dict, cfg: ReflectionConfig) -> dict:
+    """How well `view`'s decomposition `r` of reflector `refl` predicts other captures' pixels
+    on the reflector, against the unsplit photo (Xu et al. §7 discard decompositions that fail;
+    here that is measured). For up to cfg.accept_views views t that see the reflector, nearest
+    first and not among the decomposition's neighbours (their photos fitted the layers), t's
+    surface points a and mirror-world points b are projected into `view` (both depth-tested,
+    as the renderer's fuzzy test would): two layers predict I0(a) + R(b) (Eq. 3 at t), one layer
+    I(a). When every view that sees the reflector was a neighbour, the nearest neighbours are
+    used (`source` says which). Returns {views, source, pixels, two_layer, single_layer}: mean
+    absolute errors over the predicted pixels (None without 50 of them)."""
+    from .decompose import by_pose_distance
+    from .decompose_terms import _nearest, depth_consistent, project, sample_bilinear
+    kg, R = r["geom"], np.clip(np.minimum(r["R"], r["geom"].image), 0, None)
+    I0 = kg.image - R
+    used = {n["view"] for n in r["neighbours"]}
+    held, near = [], []  # nearest first; masks only (cheap) until enough held-out views
+    for t in by_pose_distance(loader.cams[view], [n for n in loader.names if n != view],
+                              loader.cams):
+        if loader.mask(t, refl).sum() >= cfg.min_mask_pixels:
+            (near if t in used else held).append(t)
+            if len(held) == cfg.accept_views:
+                break
+    views, source = held, "held-out views"
+    if not views:
+        views, source = near[:cfg.accept_views], "decomposition neighbours"
+    tol = cfg.decompose.overlap_tol
+    e2 = e1 = 0.0
+    n, named = 0, []
+    for t in views:
+        tg = loader.geom(t, refl)
+        sel = tg.mask & (tg.D1 > 0)
+        a, za = project(kg.camera, tg.X0[sel])
+        b, zb = project(kg.camera, tg.X1[sel])
+        ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
+        ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
+        if ok.sum() < 50:
+            continue
+        target = tg.image[sel][ok]
+        two = sample_bilinear(I0, a[ok]) + sample_bilinear(R, b[ok])
+        one = sample_bilinear(kg.image, a[ok])
+        e2 += float(np.abs(two - target).mean(1).sum())
+        e1 += float(np.abs(one - target).mean(1).sum())
+        n += int(ok.sum())
+        named.append(t)
+    if n < 50:
+        return {"views": named, "source": source, "pixels": n, "two_layer": None,
+                "single_layer": None}
+    return {"views": named, "source": source, "pixels": n, "two_layer": round(e2 / n, 6),
+            "single_layer": round(e1 / n, 6)}
+
+
 def decompose_view(loader: Loader, view: str, reflectors: list[dict],
                    cfg: ReflectionConfig) -> tuple[list[dict], dict]:
     """(kept decompositions, layers.json report) of `view` for every reflector whose mask in it
-    has at least cfg.min_mask_pixels pixels; discarded ones are named in the report."""
+    has at least cfg.min_mask_pixels pixels; discarded ones are named in the report, with the
+    reason: too few neighbours, or (cfg.accept_test) two layers that predict other captures of
+    the reflector worse than the unsplit photo does (`predict_views`): that reflector is then
+    single layer in this view."""
     _, _, wc, _, _ = loader.raw(view)
     results, skipped = [], []
     for refl in reflectors:
         if int(loader.mask(view, refl).sum()) < cfg.min_mask_pixels:
             continue
         r = decompose_reflector(loader, view, refl, cfg.decompose)
+        if "discarded" not in r and cfg.accept_test:
+            v = r["validation"] = predict_views(loader, view, refl, r, cfg)
+            if v["two_layer"] is not None and v["two_layer"] >= v["single_layer"]:
+                r["discarded"] = (f"two layers predict {', '.join(v['views'])} worse than the photo "
+                                  f"alone ({v['two_layer']:.4f} vs {v['single_layer']:.4f} mean "
+                                  f"absolute error, {v['source']})")
         (skipped if "discarded" in r else results).append(r)
     report = {"reflector": None, "reflectors": [], "discarded": [
         {k: v for k, v in r.items()
-         if k in ("name", "discarded", "neighbours", "mask_pixels")}
+         if k in ("name", "discarded", "neighbours", "mask_pixels", "validation")}
         for r in skipped], "work_size": [wc.width, wc.height]}
     if results:
         report["reflector"] = max(results, key=lambda r: r["mask_pixels"])["name"]

@@ -85,6 +85,13 @@ class ReflectionConfig(ReflectorViewsConfig):
     m1_tol_score: float = param(0.002, "M1 adaptive target: accept a coarser mesh while its mean "
                                 "relative depth error grows by at most this (view_mesh's default)",
                                 min=0.0, max=1.0)
+    accept_test: bool = param(True, "keep a view's decomposition of a reflector only when its two "
+                              "layers predict other captures of the reflector better than the "
+                              "unsplit photo (reflection_layers.predict_views); else that "
+                              "reflector is single layer in the view")
+    accept_views: int = param(2, "captures predicted by accept_test (nearest first, not the "
+                              "decomposition's neighbours when others see the reflector)",
+                              min=1, max=100)
 
     decompose: DecomposeOptions = param(DecomposeOptions(), "the two-layer decomposition (§4.3)")
 

@@ -136,3 +136,36 @@ def test_decision_needs_a_reflection_to_explain_the_surface_warp_error():
     ok, why = decision(dict(base, surface_error=0.01, mirror_ratio=0.1), 0.02, 4, 0.05, 0.4, 0.5)
     assert not ok and "<= 0.02" in why
 
+
+class _Views:
+    """What reflection_layers.predict_views reads of a Loader: cameras, names, masks, ViewGeoms."""
+
+    def __init__(self, views):
+        self.geoms = {v.name: v for v in views}
+        self.names = list(self.geoms)
+        self.cams = {n: g.camera for n, g in self.geoms.items()}
+
+    def mask(self, name, refl):
+        return self.geoms[name].mask
+
+    def geom(self, name, refl):
+        return self.geoms[name]
+
+
+def test_accept_test_keeps_true_layers_and_rejects_wrong_ones():
+    """Two layers that are right predict the other view better than the unsplit photo; a
+    reflection layer of noise predicts it worse (the decomposition is then discarded)."""
+    from ibr_pipeline.geometry.reflection_layers import predict_views
+    from ibr_pipeline.geometry.reflection_views import ReflectionConfig
+    beta = 0.3
+    (a, b), cols = _scene(beta)
+    loader, cfg = _Views([a, b]), ReflectionConfig()
+    good = predict_views(loader, "a", {}, {"geom": a, "R": beta * cols["a"], "neighbours": []}, cfg)
+    assert good["views"] == ["b"] and good["source"] == "held-out views" and good["pixels"] > 500
+    assert good["two_layer"] < 0.5 * good["single_layer"], good
+    noise = np.random.default_rng(0).uniform(0, 0.3, a.image.shape)
+    bad = predict_views(loader, "a", {}, {"geom": a, "R": noise, "neighbours": []}, cfg)
+    assert bad["two_layer"] > bad["single_layer"] == good["single_layer"], bad
+    nb = predict_views(loader, "a", {}, {"geom": a, "R": beta * cols["a"],
+                                         "neighbours": [{"view": "b"}]}, cfg)
+    assert nb["source"] == "decomposition neighbours" and nb["views"] == ["b"]
