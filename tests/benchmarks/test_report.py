@@ -162,3 +162,26 @@ def test_a_bench_folder_without_results_is_a_clear_error(ws, tmp_path, capsys):
     assert "nope" in err and "results.jsonl" in err
     assert sorted(p.name for p in ws.iterdir()) == before  # nothing written
     assert main(["report", str(ws), "--bench", str(ws / "bench")]) == 0
+
+
+def test_detection_candidates_are_listed_with_their_evidence(ws):
+    """A workspace where `reflectors` scored candidates and kept none (a mirror-free capture): the
+    report still has a Reflections section listing each candidate, its verdict and reason, and
+    its numbers trace to planes.json."""
+    (ws / "reflection").mkdir()
+    cands = [{"name": "detected_0", "plane": [0, 0, 1, -1], "views": 12, "kept": False,
+              "score": {"surface_error": 0.0312, "mirror_ratio": 4.0, "pairs": 24,
+                        "fit_beta": 0.0046, "fit_corr": 0.0016},
+              "reason": "surface-warp error 0.0312 > 0.02 but no reflection explains it"},
+             {"name": "detected_1", "plane": [0, 1, 0, -2], "views": 1, "kept": False,
+              "score": {"surface_error": None, "pairs": 0}, "reason": "seen by 1 view(s), 2 needed"}]
+    (ws / "reflection" / "planes.json").write_text(json.dumps(
+        {"format": "ibr_pipeline.reflectors/1", "reflectors": [], "candidates": cands}))
+    import html as H
+    page = report.write_report(ws).read_text()
+    assert "Reflections" in page and "2 candidate" in page
+    for c in cands:
+        assert c["name"] in page and H.escape(c["reason"], quote=False) in page
+    facts = json.loads((ws / "report" / "facts.json").read_text())
+    keys = {f["key"]: f["value"] for f in facts if f["source"] == "reflection/planes.json"}
+    assert keys["candidates.0.score.surface_error"] == 0.0312 and keys["candidates.0.views"] == 12
