@@ -201,13 +201,16 @@ def reflector_mask(camera: Camera, plane, polygon: np.ndarray | None, depth: np.
 
 
 def mirror_points(camera: Camera, plane, mask: np.ndarray, scene,
-                  min_gap: float = 0.03, bounds=None) -> tuple[np.ndarray, np.ndarray]:
+                  min_gap: float = 0.03, bounds=None,
+                  transmit: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The planar-reflection geometry of a view (§4.3.1 initialisation of M1): for each pixel in
     `mask`, the reflected ray from the plane is cast into G (open3d RaycastingScene `scene`); the
     mirror-world point lies on the camera ray at the total path length. Hits closer than
     `min_gap` to the plane (noise / thickness of a fused G at the reflector) are skipped; rays
     that leave G through a hole end on the box `bounds` = (lo, hi) when given. Returns (H, W, 3) world
-    points (NaN where there is none) and their (H, W) z-depth in this camera (0 where none)."""
+    points (NaN where there is none) and their (H, W) z-depth in this camera (0 where none).
+    `transmit`: the ray goes on through the plane instead (what a pane of glass shows behind
+    it): the points are then the real geometry behind the plane."""
     from .raycast import cast
 
     H, W = camera.height, camera.width
@@ -231,7 +234,7 @@ def mirror_points(camera: Camera, plane, mask: np.ndarray, scene,
     r = P - c
     rng0 = np.linalg.norm(r, axis=1)
     r /= rng0[:, None]
-    r_ref = r - 2.0 * (r @ p[:3])[:, None] * p[:3]
+    r_ref = r if transmit else r - 2.0 * (r @ p[:3])[:, None] * p[:3]
     # the reflected ray must leave the reflector: a fused (TSDF) G is noisy / has thickness around
     # the plane, so hits within `min_gap` of the plane are skipped (recast from behind them);
     # without this M1 collapses onto the plane (= M0) and the two layers cannot be told apart

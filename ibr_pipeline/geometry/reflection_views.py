@@ -249,6 +249,16 @@ class Loader:
             self._fp[key] = Footprint(name, wc, m, D1.astype(np.float32))
         return self._fp[key]
 
+    def transmitted(self, g, refl):
+        """ViewGeom `g` with X1 / D1 replaced by the geometry behind the plane on each mask
+        pixel's camera ray (`mirror_points(transmit=True)`): what glass would show."""
+        import dataclasses
+
+        from .planes import mirror_points
+        Xt, Dt = mirror_points(g.camera, refl["plane"], g.mask, self.scene,
+                               min_gap=self.cfg.min_gap, bounds=self.bounds, transmit=True)
+        return dataclasses.replace(g, X1=Xt, D1=Dt)
+
     def geom(self, name, refl, masked: bool = False):
         """The full ViewGeom (LRU-cached). M1's points are rebuilt from the footprint's depth:
         `mirror_points` puts every mirror-world point on its pixel's camera ray. `masked`: the
@@ -352,6 +362,13 @@ def score_plane(loader: Loader, cand: dict) -> dict:
             cols = {g.name: loader.prior(g.name, dict(cand, beta=1.0), [cand], geom=g)
                     for g in views}
             score.update({f"fit_{k}": v for k, v in reflectance_cue(views, cols).items()})
+        if (cfg.detect_explained and (score.get("surface_error") or 0) > cfg.detect_threshold
+                and not (score.get("mirror_ratio") or np.inf) < cfg.mirror_ratio):
+            # a failed surface warp that the mirror warp does not explain: does the scene
+            # behind the plane (glass) explain it? (only here: one more ray cast per view)
+            t = score_candidate([loader.transmitted(g, cand) for g in views])
+            score["transmission_error"] = t["mirror_error"]
+            score["transmission_ratio"] = t["mirror_ratio"]
     finally:
         loader.forget(cand["name"])
     kept, reason = decision(score, cfg.detect_threshold, cfg.detect_min_pairs,
@@ -363,9 +380,13 @@ def score_plane(loader: Loader, cand: dict) -> dict:
     if kept:
         if score.get("mirror_ratio") is not None and score["mirror_ratio"] < cfg.mirror_ratio:
             cand["beta"] = 1.0  # a mirror (§4.3.3 special case)
+            cand["material"] = "mirror"
             cand["reason"] += "; a mirror"
-        elif (score.get("fit_beta") or 0) > 0:  # the fitted reflectance (Eq. 3)
-            cand["beta"] = round(float(np.clip(score["fit_beta"], 0.01, 0.99)), 4)
+        else:
+            glass = (score.get("transmission_ratio") or np.inf) < cfg.mirror_ratio
+            cand["material"] = "glass" if glass else "glossy"
+            if (score.get("fit_beta") or 0) > 0:  # the fitted reflectance (Eq. 3)
+                cand["beta"] = round(float(np.clip(score["fit_beta"], 0.01, 0.99)), 4)
         cand["source"] = "detected"
     return cand
 

@@ -82,11 +82,11 @@ def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | No
     a wall at the edge of two views with depth errors scored like a reflector). Otherwise it is a
     reflector when (a) the Eq. 3 fit gives beta >= min_beta with correlation >= min_corr
     (`min_beta` None: cue off), or (b) its surface warp leaves a median error above `threshold`
-    and, with `mirror_ratio` given, a reflection explains that error: the mirror warp does better
-    (mirror/surface error < mirror_ratio). An error that neither the mirror warp nor the Eq. 3
-    fit explains is view-inconsistency of another kind -- on real captures, wrong geometry at a
-    depth edge or a light fixture -- and is reported as such. `mirror_ratio` None: the error alone
-    decides (b)."""
+    and, with `mirror_ratio` given, a reflector explains that error: the mirror warp does better
+    (mirror/surface error < mirror_ratio), or the warp of the geometry behind the plane does
+    (key transmission_ratio: glass). An error that none of these explains is view-inconsistency
+    of another kind -- on real captures, wrong geometry at a depth edge or a light fixture -- and
+    is reported as such. `mirror_ratio` None: the error alone decides (b)."""
     pairs = score.get("pairs", 0) or 0
     if pairs < min_pairs:
         return False, f"scored on {pairs} view pair(s), {min_pairs} needed"
@@ -106,7 +106,14 @@ def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | No
     if r is not None and r < mirror_ratio:
         return True, (f"{err} > {threshold:g} on {pairs} view pairs, explained by the mirror warp "
                       f"(mirror/surface error {r:.2f} < {mirror_ratio:g})")
+    t = score.get("transmission_ratio")
+    if t is not None and t < mirror_ratio:
+        return True, (f"{err} > {threshold:g} on {pairs} view pairs, explained by the scene seen "
+                      f"through the plane (transmission/surface error {t:.2f} < {mirror_ratio:g}): "
+                      "glass")
     ratio = "no mirror warp" if r is None else f"mirror/surface error {r:.2f} >= {mirror_ratio:g}"
+    if t is not None:
+        ratio += f", transmission/surface error {t:.2f} >= {mirror_ratio:g}"
     return False, f"{err} > {threshold:g} but no reflection explains it ({ratio}{fit})"
 
 

@@ -128,6 +128,10 @@ def test_decision_needs_a_reflection_to_explain_the_surface_warp_error():
     assert not ok and "no reflection explains" in why
     ok, why = decision(dict(base, mirror_ratio=0.3), 0.02, 4, 0.05, 0.4, 0.5)
     assert ok and "mirror warp" in why
+    ok, why = decision(dict(base, mirror_ratio=2.0, transmission_ratio=0.2), 0.02, 4, 0.05, 0.4, 0.5)
+    assert ok and "through the plane" in why  # glass: the scene behind the pane explains it
+    ok, why = decision(dict(base, mirror_ratio=2.0, transmission_ratio=0.9), 0.02, 4, 0.05, 0.4, 0.5)
+    assert not ok and "transmission/surface error 0.90" in why
     assert decision(dict(base, mirror_ratio=2.0), 0.02, 4, 0.05, 0.4, None)[0]  # the error alone
     ok, why = decision(dict(base, mirror_ratio=2.0, fit_beta=0.2, fit_corr=0.6), 0.02, 4, 0.05, 0.4, 0.5)
     assert ok and "Eq. 3 fit" in why
