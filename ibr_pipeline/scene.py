@@ -211,13 +211,18 @@ class View:
                     d.get("depth"))
 
 
+MATERIALS = ("mirror", "glass", "glossy")  # what a reflector is made of (docs/REFLECTION.md)
+
+
 @dataclass(frozen=True)
 class Reflector:
     """A user-given or detected planar reflector (`reflectors.json`, Xu et al. §4.3.1 "UI").
 
     plane: (a, b, c, d) with n . x + d = 0, n normalised on load. beta: reflectance in (0, 1] if
     known. polygon: optional (N, 3) world-space outline of the reflector's extent. masks: optional
-    per-view mask images (view name -> workspace key), white = reflector.
+    per-view mask images (view name -> workspace key), white = reflector. material: optional
+    "mirror" (beta 1 when no beta is given), "glass" or "glossy"; detection sets it for the planes
+    it finds, a user-given one overrides it (user planes win).
     """
 
     name: str
@@ -225,6 +230,7 @@ class Reflector:
     beta: float | None = None
     polygon: tuple[tuple[float, float, float], ...] | None = None
     masks: dict[str, str] = field(default_factory=dict)
+    material: str | None = None
 
     @property
     def normal(self) -> np.ndarray:
@@ -233,7 +239,7 @@ class Reflector:
     def to_dict(self) -> dict:
         return {"name": self.name, "plane": list(self.plane), "beta": self.beta,
                 "polygon": None if self.polygon is None else [list(p) for p in self.polygon],
-                "masks": dict(self.masks)}
+                "masks": dict(self.masks), "material": self.material}
 
     @staticmethod
     def from_dict(d: dict, where: str) -> "Reflector":
@@ -259,8 +265,14 @@ class Reflector:
         masks = d.get("masks") or {}
         if not isinstance(masks, dict):
             raise InputError(f"{where}: 'masks' must map view names to mask image paths")
+        material = d.get("material")
+        if material is not None and material not in MATERIALS:
+            raise InputError(f"{where}: 'material' must be one of {', '.join(MATERIALS)}, got "
+                             f"{material!r}")
+        if material == "mirror" and beta is None:
+            beta = 1.0
         return Reflector(name, tuple(float(c) for c in plane), None if beta is None else float(beta),
-                         poly, {str(k): str(v) for k, v in masks.items()})
+                         poly, {str(k): str(v) for k, v in masks.items()}, material)
 
 
 @dataclass(frozen=True)

@@ -141,8 +141,14 @@ def test_depth_png_is_millimetres(tmp_path):
 def test_reflectors_parse_and_validate(tmp_path):
     r = Reflector.from_dict({"name": "m", "plane": [0, 2, 0, -4], "beta": 0.5}, "r")
     np.testing.assert_allclose(r.plane, [0, 1, 0, -2])
+    assert r.material is None and Reflector.from_dict(r.to_dict(), "r") == r
+    m = Reflector.from_dict({"plane": [1, 0, 0, 0], "material": "mirror"}, "r")
+    assert m.beta == 1.0 and m.material == "mirror"  # a mirror reflects everything
+    g = Reflector.from_dict({"plane": [1, 0, 0, 0], "material": "glass", "beta": 0.08}, "r")
+    assert g.beta == 0.08 and g.to_dict()["material"] == "glass"
     for bad, msg in [({"plane": [0, 0, 0, 1]}, "normal is zero"), ({"plane": [1, 2]}, "4 finite"),
-                     ({"plane": [0, 0, 1, 0], "beta": 2}, "beta"), ({}, "needs a 'plane'")]:
+                     ({"plane": [0, 0, 1, 0], "beta": 2}, "beta"), ({}, "needs a 'plane'"),
+                     ({"plane": [0, 0, 1, 0], "material": "chrome"}, "material")]:
         with pytest.raises(InputError, match=msg):
             Reflector.from_dict(bad, "reflectors.json: reflector 0")
     cams = _cams()
