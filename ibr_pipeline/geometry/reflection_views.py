@@ -345,9 +345,10 @@ def plane_candidates(loader: Loader) -> list[dict]:
 
 
 def score_plane(loader: Loader, cand: dict) -> dict:
-    """One candidate's evidence (multi-view warp errors, Eq. 3 fit) and verdict: the candidate
-    with `score`, `views`, `kept`, `reason` and, when kept, `beta` / `source`. The loader's
-    caches of this candidate are dropped afterwards (each is scored once)."""
+    """One candidate's evidence (multi-view warp errors, Eq. 3 fit, and the transmission warp
+    where the surface warp fails unexplained) and verdict: the candidate with `score`, `views`,
+    `kept`, `reason` and, when kept, `beta`, `material`, `source`. The loader's caches of this
+    candidate are dropped afterwards (each is scored once)."""
     import numpy as np
 
     from .reflector_detect import decision, reflectance_cue, score_candidate

@@ -17,6 +17,11 @@ where C is the colour of the reflected scene point (mirror(X1), seen directly by
 reflection_prior.py). The least-squares beta and the correlation of the two differences tell a
 reflector (beta > 0, correlated) from a diffuse plane (beta ~ 0, uncorrelated), and estimate its
 reflectance.
+
+Glass shows the scene behind it: its surface warp fails and its mirror warp need not do better.
+The same warp error with the geometry behind the plane on each pixel's ray (the caller passes
+ViewGeoms whose X1 / D1 are those points) tells it apart from a plane whose geometry is simply
+wrong. `decision` weighs the cues and says why.
 """
 from __future__ import annotations
 
