@@ -30,8 +30,11 @@ def register(sub) -> None:
                    "in the input's own frame (the poses the capture came with), mapped through "
                    "global/poses.json")
     p.add_argument("--out", type=Path, help="output folder (default WS/renders/cli_<what>)")
-    p.add_argument("--supersample", action="store_true",
-                   help="render at low resolution and upsample with DSRNet (needs the supersample stage)")
+    p.add_argument("--supersample", nargs="?", const="on", default="off",
+                   choices=("on", "off", "auto"),
+                   help="render at low resolution and upsample with DSRNet (needs the supersample "
+                   "stage); 'auto': only when that is as good, or faster and within 0.5 dB, on "
+                   "this machine, measured on DSRNet's validation views first (the log says which)")
     p.add_argument("--self-ensemble", action="store_true",
                    help="with --supersample: average DSRNet on the frame and its mirror image "
                    "(+0.06 dB on held-out views, 1.75x the network time; docs/DSRNET.md)")
@@ -51,6 +54,51 @@ def _supersampler(ws, self_ensemble: bool = False):
     s = SuperSampler.load(ws, self_ensemble=self_ensemble)
     s.reset()
     return s
+
+
+def _measure_supersampling(ws, model, sampler, enc, views: int = 2) -> dict:
+    """Render DSRNet's validation views (capture views left out, nn/train.json) at full resolution
+    and through DSRNet, against their photographs: median ms and mean PSNR of each, and the
+    choice (`nn.infer.prefer_dsrnet`). Each view is rendered once untimed first (GL start-up)."""
+    import json
+    import time
+
+    import numpy as np
+
+    from .. import layout as L
+    from ..io.images import read_image
+    from ..metrics import psnr
+    from ..nn.data import low_res_camera, supersampled_size
+    from ..nn.infer import prefer_dsrnet
+    cams = L.registered_cameras(ws)
+    names = [n for n in json.loads(ws.path(L.TRAIN_JSON).read_text()).get("val_views", [])
+             if n in cams][:views] if ws.path(L.TRAIN_JSON).is_file() else []
+    names = names or list(cams)[:views]
+    scene = L.posed_scene(ws)
+    scale = int(getattr(sampler, "scale", 2))
+    ms = {"direct": [], "dsrnet": []}
+    score = {"direct": [], "dsrnet": []}
+    for n in names:
+        cam, photo = cams[n], read_image(ws.path(scene.view(n).image), enc)
+        w, h = supersampled_size(cam.width, cam.height, scale)
+        lr = low_res_camera(cam, scale)
+        model.render(cam, exclude=(n,))
+        for kind in ("direct", "dsrnet"):
+            sampler.reset()
+            t0 = time.perf_counter()
+            if kind == "direct":
+                img = model.render(cam, exclude=(n,)).color
+            else:
+                f = model.render(lr, exclude=(n,))
+                img = np.asarray(sampler(f.color, f.depth, lr), np.float32)
+            ms[kind].append((time.perf_counter() - t0) * 1000.0)
+            score[kind].append(psnr(np.clip(img[:h, :w], 0, 1), photo[:h, :w]))
+    sampler.reset()
+    fig = {k: (float(np.median(ms[k])), float(np.mean(score[k]))) for k in ms}
+    use, why = prefer_dsrnet(fig["direct"][0], fig["dsrnet"][0], fig["direct"][1], fig["dsrnet"][1])
+    return {"use": use, "why": why, "views": names,
+            **{f"{k}_ms": round(v[0], 2) for k, v in fig.items()},
+            **{f"{k}_psnr": round(v[1], 3) for k, v in fig.items()}}
 
 
 def read_camera_file(path: Path) -> tuple[list, bool]:
@@ -133,14 +181,21 @@ def main(args: argparse.Namespace) -> int:
             log.info("render: no gt/test_cameras.json: rendering every capture view left out")
     if args.frames:
         cams, excl = cams[:args.frames], excl[:args.frames]
-    sampler = None
-    if args.self_ensemble and not args.supersample:
+    sampler, choice = None, None
+    if args.self_ensemble and args.supersample == "off":
         raise InputError("--self-ensemble needs --supersample")
-    if args.supersample:
+    if args.supersample == "on" or (args.supersample == "auto" and ws.path(L.MODEL).is_file()):
         sampler = _supersampler(ws, args.self_ensemble)
+    elif args.supersample == "auto":
+        log.info("render: no trained DSRNet (%s): rendering at full resolution", ws.path(L.MODEL))
     out = args.out or ws.path(f"{L.RENDERS}/cli_{what}")
     model = IBRModel.load(ws, layers=not args.single_layer, settings=cfg.renderer)
     from ..nn.data import low_res_camera
+    if args.supersample == "auto" and sampler is not None:
+        choice = _measure_supersampling(ws, model, sampler, enc)
+        log.info("render: --supersample auto: %s", choice["why"])
+        if not choice["use"]:
+            sampler = None
     frames, rows, prev = [], [], None
     try:
         for i, ((name, cam), ex) in enumerate(tqdm(list(zip(cams, excl)), desc="render",
@@ -167,6 +222,7 @@ def main(args: argparse.Namespace) -> int:
     ms = [r["ms"] for r in rows]
     with atomic_path(out / "timings.json") as tmp:
         tmp.write_text(json.dumps({"what": what, "supersample": bool(sampler),
+                                   "supersample_choice": choice,
                                    "self_ensemble": bool(sampler) and args.self_ensemble,
                                    "single_layer": args.single_layer,
                                    "median_ms": float(np.median(ms)) if ms else None,

@@ -104,3 +104,19 @@ class SuperSampler:
         self._prev = (color, depth, camera_lr)
         self.last_ms = (time.perf_counter() - t0) * 1000.0
         return result
+
+
+def prefer_dsrnet(direct_ms: float, dsrnet_ms: float, direct_psnr: float, dsrnet_psnr: float,
+                  max_loss_db: float = 0.5) -> tuple[bool, str]:
+    """Whether `ibr render --supersample auto` should use DSRNet (Xu et al. §5.2: render at low
+    resolution, upsample) rather than render at full resolution, from the two measured on the
+    same views: when it is at least as good, or faster while losing at most `max_loss_db`.
+    Returns (use it, why)."""
+    figures = (f"DSRNet {dsrnet_ms:.1f} ms / {dsrnet_psnr:.2f} dB, full resolution "
+               f"{direct_ms:.1f} ms / {direct_psnr:.2f} dB")
+    if dsrnet_psnr >= direct_psnr:
+        return True, f"{figures}: DSRNet is at least as good"
+    if dsrnet_ms < direct_ms and dsrnet_psnr >= direct_psnr - max_loss_db:
+        return True, f"{figures}: DSRNet is faster and within {max_loss_db:g} dB"
+    why = (["slower"] if dsrnet_ms >= direct_ms else []) + [f"{direct_psnr - dsrnet_psnr:.2f} dB worse"]
+    return False, f"{figures}: rendering at full resolution (DSRNet is {' and '.join(why)} here)"

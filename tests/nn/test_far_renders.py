@@ -76,6 +76,18 @@ def test_stage_trains_on_far_renders_of_training_views(gt_ws):
     tim = json.loads((out / "timings.json").read_text())
     assert tim["supersample"] and tim["self_ensemble"] and len(tim["frames"]) == 2
     assert main(["render", str(gt_ws), "--heldout", "--self-ensemble"]) == 2  # needs --supersample
+    # auto: DSRNet only when the measured figures on its validation views say so
+    from ibr_pipeline.nn.infer import prefer_dsrnet
+    out = gt_ws / "renders" / "cli_auto"
+    assert main(["render", str(gt_ws), "--heldout", "--supersample", "auto", "--frames", "1",
+                 "--out", str(out), "--no-progress"]) == 0
+    tim = json.loads((out / "timings.json").read_text())
+    ch = tim["supersample_choice"]
+    assert ch["views"] == rep["val_views"][:2] and ch["direct_ms"] > 0 and ch["dsrnet_ms"] > 0
+    assert tim["supersample"] == ch["use"] == prefer_dsrnet(ch["direct_ms"], ch["dsrnet_ms"],
+                                                            ch["direct_psnr"], ch["dsrnet_psnr"])[0]
+    # the same views through DSRNet: what the stage's own validation measured (another code path)
+    assert abs(ch["dsrnet_psnr"] - rep["validation"]["psnr"]) < 0.05, (ch, rep["validation"])
     # leaving out every other view is a bad value, named before anything is rendered
     assert main(["-q", "supersample", str(gt_ws), "--exclude-nearest", "7"] + fast) == 2
 
@@ -116,3 +128,14 @@ def test_self_ensemble_is_mirror_equivariant():
     assert (flip(plain_m) - plain).abs().max() > 1e-3
     assert (flip(ens_m) - ens).abs().max() < 1e-5
     assert torch.allclose(ens, 0.5 * (plain + flip(plain_m)), atol=1e-5)
+
+
+def test_prefer_dsrnet_rule():
+    from ibr_pipeline.nn.infer import prefer_dsrnet
+    assert prefer_dsrnet(10.0, 50.0, 30.0, 30.1)[0]          # better, even if slower
+    ok, why = prefer_dsrnet(10.0, 5.0, 30.0, 29.6)
+    assert ok and "faster" in why                            # faster, within 0.5 dB
+    ok, why = prefer_dsrnet(10.0, 5.0, 30.0, 29.0)
+    assert not ok and "worse" in why                         # faster but 1 dB worse
+    ok, why = prefer_dsrnet(5.0, 10.0, 30.0, 29.9)
+    assert not ok and "slower" in why and "full resolution" in why
