@@ -37,17 +37,10 @@ def make_gt_workspace(scene: Path, ws_dir: Path, depth_noise: float = 0.0):
 
 def run_stage(ws, overrides: dict | None = None, force: bool = False):
     """Stages `reflectors` and `reflection`; `overrides`: fields of either (stage_configs)."""
-    import dataclasses
-
-    from ibr_pipeline.geometry.reflection_views import stage_configs
+    from ibr_pipeline.geometry.reflection_views import split_overrides
     from ibr_pipeline.pipeline import load_configs, run, select_stages
     from ibr_pipeline.stages import STAGES
-    over = overrides or {}
-    tables = {}
-    for stage, cfg in zip(("reflectors", "reflection"), stage_configs(over)):
-        names = {f.name for f in dataclasses.fields(cfg)}
-        tables[stage] = {k: v for k, v in over.items() if k in names}
-    return run(STAGES, ws, load_configs(STAGES, ws, tables),
+    return run(STAGES, ws, load_configs(STAGES, ws, split_overrides(overrides or {})),
                select_stages(STAGES, "reflectors", "reflection"), force=force, progress=False)
 
 

@@ -11,32 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ibr_pipeline.geometry.reflection_layers import visible_from
 from ibr_pipeline.metrics import psnr
 
 from .reflection import forget_passes, make_loader
-
-
-def mask_at(mask: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """`mask` at the nearest pixel of each (x, y) in `pos`; False outside the image or at NaN."""
-    H, W = mask.shape[:2]
-    x = np.rint(np.nan_to_num(pos[..., 0], nan=-1)).astype(np.int64)
-    y = np.rint(np.nan_to_num(pos[..., 1], nan=-1)).astype(np.int64)
-    inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
-    out = np.zeros(pos.shape[:-1], bool)
-    out[inside] = mask[y[inside], x[inside]]
-    return out
-
-
-def _visible_in_k(tg, kg, tol: float):
-    """t's reflector pixels (sel) whose surface point (a) and mirror-world point (b) are both seen
-    by k, inside k's reflector mask, by the depth tests (ok)."""
-    from ibr_pipeline.geometry.decompose_terms import depth_consistent, project
-    sel = tg.mask & (tg.D1 > 0)
-    a, za = project(kg.camera, tg.X0[sel])
-    b, zb = project(kg.camera, tg.X1[sel])
-    ok = depth_consistent(kg.depth, a, za, tol) & mask_at(kg.mask, a)
-    ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
-    return sel, a, b, ok
 
 
 def predict(tg, kg, R_k, tol: float = 0.05, layers=None, own_r=None) -> dict | None:
@@ -49,7 +27,7 @@ def predict(tg, kg, R_k, tol: float = 0.05, layers=None, own_r=None) -> dict | N
     perfect reflection layer, whose error is the surface layer's resampling alone (the part both
     predictions share). None when fewer than 50 pixels are valid."""
     from ibr_pipeline.geometry.decompose_terms import sample_bilinear
-    sel, a, b, ok = _visible_in_k(tg, kg, tol)
+    sel, a, b, ok = visible_from(tg, kg, tol)
     if ok.sum() < 50:
         return None
     out = {"sel": sel, "ok": ok, "target": tg.image[sel]}
@@ -127,7 +105,7 @@ def rerender_own(tg, kg, R_k, m1_offset=None, tol: float = 0.05, m0_offset=None,
     (optionally offset: M0.ply) is seen, instead of t's surface points. Returns (target,
     layered) or None."""
     from ibr_pipeline.geometry.decompose_terms import sample_bilinear
-    sel, a, b, ok = _visible_in_k(tg, kg, tol)
+    sel, a, b, ok = visible_from(tg, kg, tol)
     if ok.sum() < 50:
         return None
     c = tg.camera.center

@@ -84,7 +84,7 @@ def _sample_np(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_REPLICATE)
 
 
-def sample_points(img: np.ndarray, pos: np.ndarray, width: int = 1024) -> np.ndarray:
+def remap_points(img: np.ndarray, pos: np.ndarray, width: int = 1024) -> np.ndarray:
     """_sample_np at (N, 2) positions: (N, C) samples, the same values as sampling the positions
     laid out as an image (cv2.remap's maps are 2D and limited to 32767 rows or columns, so the
     points are laid out in rows of `width`)."""

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .reflection_views import Loader, ReflectionConfig, decompose_reflector
+from .reflection_views import Loader, ReflectionConfig, decompose_reflector, simplify_m1
 
 _INTERNAL = ("R", "mask", "geom", "m1_offset", "m0_offset")  # arrays, not for layers.json
 
@@ -30,6 +30,19 @@ class ViewLayers:
     m0_vertices: np.ndarray | None
 
 
+def visible_from(tg, kg, tol: float):
+    """Which of view t's reflector pixels view k can predict: sel = t's mask with M1; a, b = t's
+    surface and mirror-world points of sel projected into k; ok = both depth-consistent in k
+    (the mirror-world point against k's own M1) and a inside k's mask."""
+    from .decompose_terms import _nearest, depth_consistent, project
+    sel = tg.mask & (tg.D1 > 0)
+    a, za = project(kg.camera, tg.X0[sel])
+    b, zb = project(kg.camera, tg.X1[sel])
+    ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
+    ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
+    return sel, a, b, ok
+
+
 def predict_views(loader: Loader, view: str, refl: dict, r: dict, cfg: ReflectionConfig) -> dict:
     """How well `view`'s decomposition `r` of reflector `refl` predicts other captures' pixels
     on the reflector, against the unsplit photo (Xu et al. §7 discard decompositions that fail;
@@ -41,7 +54,7 @@ def predict_views(loader: Loader, view: str, refl: dict, r: dict, cfg: Reflectio
     used (`source` says which). Returns {views, source, pixels, two_layer, single_layer}: mean
     absolute errors over the predicted pixels (None without 50 of them)."""
     from .decompose import by_pose_distance
-    from .decompose_terms import _nearest, depth_consistent, project, sample_bilinear
+    from .decompose_terms import sample_bilinear
     kg, R = r["geom"], np.clip(np.minimum(r["R"], r["geom"].image), 0, None)
     I0 = kg.image - R
     used = {n["view"] for n in r["neighbours"]}
@@ -55,16 +68,11 @@ def predict_views(loader: Loader, view: str, refl: dict, r: dict, cfg: Reflectio
     views, source = held, "held-out views"
     if not views:
         views, source = near[:cfg.accept_views], "decomposition neighbours"
-    tol = cfg.decompose.overlap_tol
     e2 = e1 = 0.0
     n, named = 0, []
     for t in views:
         tg = loader.geom(t, refl)
-        sel = tg.mask & (tg.D1 > 0)
-        a, za = project(kg.camera, tg.X0[sel])
-        b, zb = project(kg.camera, tg.X1[sel])
-        ok = depth_consistent(kg.depth, a, za, tol) & _nearest(kg.mask, a, False)[0]
-        ok &= depth_consistent(np.where(kg.mask, kg.D1, 0.0), b, zb, tol)
+        sel, a, b, ok = visible_from(tg, kg, cfg.decompose.overlap_tol)
         if ok.sum() < 50:
             continue
         target = tg.image[sel][ok]
@@ -134,7 +142,6 @@ def compose_layers(results: list[dict], img: np.ndarray, wc, m0_vertices: np.nda
         X1, D1 = optimised_m1(r["geom"], m, r.get("m1_offset"), r["pose"])  # Eq. 7
         v, f = grid_mesh(X1, np.where(m, D1, 0.0), step=cfg.mesh_step)
         if cfg.m1_simplify and len(f):
-            from .reflection_views import simplify_m1
             v, f, m1_steps = simplify_m1(v, f, wc, cfg)
             r["m1_simplify"] = m1_steps
         verts.append(v)

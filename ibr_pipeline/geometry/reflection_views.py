@@ -96,23 +96,28 @@ class ReflectionConfig(ReflectorViewsConfig):
     decompose: DecomposeOptions = param(DecomposeOptions(), "the two-layer decomposition (§4.3)")
 
 
-def stage_configs(*layers: dict) -> tuple["ReflectorsConfig", "ReflectionConfig"]:
-    """Both stages' configs from layers of overrides applied in turn (benchmarks, tests), each
-    field to the stage that has it, the Loader's shared fields to both. Validated; a field
-    neither stage has is a ConfigError naming it."""
+def split_overrides(over: dict) -> dict[str, dict]:
+    """{field: value} for either stage -> {"reflectors": ..., "reflection": ...}: each field to
+    the stage that has it, the Loader's shared fields to both. A field neither stage has is a
+    ConfigError naming it."""
     import dataclasses
+    tables = {}
+    for stage, cls in (("reflectors", ReflectorsConfig), ("reflection", ReflectionConfig)):
+        names = {f.name for f in dataclasses.fields(cls)}
+        tables[stage] = {k: v for k, v in over.items() if k in names}
+    for k in over:
+        if not any(k in t for t in tables.values()):
+            raise ConfigError(f"reflection.{k}", "no such field in stage reflectors or reflection")
+    return tables
 
+
+def stage_configs(*layers: dict) -> tuple["ReflectorsConfig", "ReflectionConfig"]:
+    """Both stages' configs from layers of overrides applied in turn (benchmarks, tests),
+    `split_overrides` of each; validated."""
     from ..config import build_config
-    a = {f.name for f in dataclasses.fields(ReflectorsConfig)}
-    b = {f.name for f in dataclasses.fields(ReflectionConfig)}
-    for layer in layers:
-        for k in layer:
-            if k not in a | b:
-                raise ConfigError(f"reflection.{k}", "no such field in stage reflectors or reflection")
-    return (build_config(ReflectorsConfig, "reflectors", *({k: v for k, v in d.items() if k in a}
-                                                          for d in layers)),
-            build_config(ReflectionConfig, "reflection", *({k: v for k, v in d.items() if k in b}
-                                                          for d in layers)))
+    split = [split_overrides(d) for d in layers]
+    return (build_config(ReflectorsConfig, "reflectors", *(t["reflectors"] for t in split)),
+            build_config(ReflectionConfig, "reflection", *(t["reflection"] for t in split)))
 
 
 # --- loading ------------------------------------------------------------------------------------

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from .decompose_terms import (ViewGeom, _nearest, depth_consistent, pose_distance, project,
-                             sample_points)
+                             remap_points)
 
 
 def warp_errors(ref: ViewGeom, nb: ViewGeom, tol: float = 0.05) -> tuple[float, float, int]:
@@ -47,8 +47,8 @@ def warp_errors(ref: ViewGeom, nb: ViewGeom, tol: float = 0.05) -> tuple[float, 
     if n < 20:
         return np.nan, np.nan, n
     img = ref.image[sel]
-    e0 = np.abs(sample_points(nb.image, p0) - img).mean(1)[both]
-    e1 = np.abs(sample_points(nb.image, p1) - img).mean(1)[both]
+    e0 = np.abs(remap_points(nb.image, p0) - img).mean(1)[both]
+    e1 = np.abs(remap_points(nb.image, p1) - img).mean(1)[both]
     return float(np.median(e0)), float(np.median(e1)), n
 
 
@@ -71,12 +71,6 @@ def score_candidate(views: list[ViewGeom], neighbours: int = 2, tol: float = 0.0
     e0, e1 = float(np.nanmedian(s0)), float(np.nanmedian(s1))
     return {"surface_error": e0, "mirror_error": e1, "mirror_ratio": e1 / max(e0, 1e-6),
             "pairs": counts}
-
-
-def is_reflective(score: dict, threshold: float, min_pairs: int, min_beta: float | None,
-                  min_corr: float, mirror_ratio: float | None = None) -> bool:
-    """`decision(...)`'s verdict alone."""
-    return decision(score, threshold, min_pairs, min_beta, min_corr, mirror_ratio)[0]
 
 
 def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | None,
@@ -140,7 +134,7 @@ def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, t
             p0, z0 = project(o.camera, X0)
             ok = depth_consistent(o.depth, p0, z0, tol) & _nearest(o.mask, p0, False)[0]
             Co = _nearest(colours[o.name], p0, np.nan)[0]
-            Io = sample_points(o.image, p0)
+            Io = remap_points(o.image, p0)
             ok &= np.all(np.isfinite(Co), axis=1) & ~np.any(Io >= saturation, axis=1)
             if ok.sum() < 20:
                 continue
