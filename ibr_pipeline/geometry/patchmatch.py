@@ -491,6 +491,13 @@ def _solve(ref_gray, ref_cam, srcs, lo, hi, opts, dev, seed, init=None, sweeps=N
             st.cost.reshape(m.H, m.W).cpu().numpy().astype(np.float32))
 
 
+def solve_view(ref_gray, ref_cam, srcs, lo, hi, opts, dev, seed, init=None, sweeps=None, first=0):
+    """One view's PatchMatch (`_solve`'s arguments and result): the task `patchmatch_views`
+    hands to its map_fn, a module-level function so that worker processes can unpickle it."""
+    return _solve(ref_gray, ref_cam, srcs, lo, hi, opts, dev, seed, init=init, sweeps=sweeps,
+                  first=first)
+
+
 def _thresholded(raw, opts: PatchMatchOptions) -> PatchMatchResult:
     """Result with depth and normal zeroed where the cost exceeds opts.max_cost."""
     depth, normal, cost = raw
@@ -580,7 +587,8 @@ def patchmatch(ref_image: np.ndarray, ref_cam: Camera, src_images: Sequence[np.n
 def patchmatch_views(images: dict[str, np.ndarray], cams: dict[str, Camera],
                      sources: dict[str, list[str]], ranges: dict[str, tuple[float, float]],
                      opts: PatchMatchOptions = PatchMatchOptions(), device: str = "cpu",
-                     progress: bool = False, seed: int = 0) -> dict[str, PatchMatchResult]:
+                     progress: bool = False, seed: int = 0,
+                     map_fn=None) -> dict[str, PatchMatchResult]:
     """Depth maps of every view in `sources` (name -> its source view names).
 
     1. photometric multi-scale PatchMatch of each view; 2. opts.geom_iterations passes: in each,
@@ -590,6 +598,10 @@ def patchmatch_views(images: dict[str, np.ndarray], cams: dict[str, Camera],
     3. forward-backward filter: a pixel stays valid when >= opts.filter_min_views of its sources'
     depth maps agree (relative depth opts.filter_rel_depth, opts.filter_reproj_px pixels).
     images: name -> (H, W, 3) at the working size; ranges: name -> (depth_min, depth_max).
+    map_fn(fn, argsets) -> iterator of (index, fn(*argsets[index])) in any order: runs the views
+    of one pass (independent of each other: every view reads only the previous pass) — worker
+    processes, say; default: one after the other here. Each view's seed is fixed by its position,
+    so the maps do not depend on map_fn, only on the torch threads each task runs with.
     """
     opts = _checked(opts)
     for name, srcs in sources.items():
@@ -611,18 +623,22 @@ def patchmatch_views(images: dict[str, np.ndarray], cams: dict[str, Camera],
         bar = tqdm(total=len(names) * (1 + opts.geom_iterations), desc="patchmatch", unit="view",
                    leave=False)
     tick = bar.update if bar is not None else (lambda: None)
-    out = {}
-    for i, n in enumerate(names):
-        out[n] = _solve(gray[n], cams[n], [(gray[s], cams[s], None) for s in sources[n]], *rng[n],
-                        opts, dev, seed + i)
-        tick()
+    run = map_fn or (lambda fn, argsets: ((i, fn(*a)) for i, a in enumerate(argsets)))
+
+    def one_pass(argsets):
+        res = [None] * len(argsets)
+        for i, r in run(solve_view, argsets):
+            res[i] = r
+            tick()
+        return dict(zip(names, res))
+
+    out = one_pass([(gray[n], cams[n], [(gray[s], cams[s], None) for s in sources[n]], *rng[n],
+                     opts, dev, seed + i) for i, n in enumerate(names)])
     for g in range(opts.geom_iterations):  # Jacobi: every view sees the previous pass's maps
         prev = {n: _thresholded(r, opts).depth for n, r in out.items()}
-        for i, n in enumerate(names):
-            src = [(gray[s], cams[s], prev.get(s)) for s in sources[n]]
-            out[n] = _solve(gray[n], cams[n], src, *rng[n], opts, dev, seed + (g + 1) * len(names) + i,
-                            init=out[n][:2], sweeps=1, first=opts.iterations + g)
-            tick()
+        out = one_pass([(gray[n], cams[n], [(gray[s], cams[s], prev.get(s)) for s in sources[n]],
+                         *rng[n], opts, dev, seed + (g + 1) * len(names) + i, out[n][:2], 1,
+                         opts.iterations + g) for i, n in enumerate(names)])
     if bar is not None:
         bar.close()
     res = {n: _thresholded(out[n], opts) for n in names}

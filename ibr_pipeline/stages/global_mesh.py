@@ -20,6 +20,7 @@ import numpy as np
 from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
+from ..executors import LocalExecutor
 from ..geometry.fusion import FusionOptions
 from ..geometry.patchmatch import PatchMatchOptions
 from ..runner import Stage, StageContext
@@ -177,8 +178,12 @@ def _mvs_depths(ctx, cams, ranges, report) -> dict:
     try:
         if cfg.mvs == "patchmatch":  # photometric, geometric passes and the final filter
             from ..geometry.patchmatch import patchmatch_views
-            res = patchmatch_views(imgs, wcams, sources, view_range, cfg.patchmatch, device=cfg.device,
-                                   progress=show)
+            jobs = ctx.jobs if str(cfg.device).startswith("cpu") else 1  # one GPU: one process
+            with LocalExecutor(max(1, min(jobs, len(sources)))) as ex:
+                res = patchmatch_views(imgs, wcams, sources, view_range, cfg.patchmatch,
+                                       device=cfg.device, progress=show,
+                                       map_fn=None if ex.jobs == 1 else _pool_map(ex, cfg.threads))
+            report["mvs_workers"] = ex.jobs
             out = {n: (r.depth.astype(np.float32), wcams[n]) for n, r in res.items()}
             report["timings"]["mvs_s_per_view"] = (time.perf_counter() - t0) / max(len(out), 1)
             report["timings"]["mvs_cpu_s_per_view"] = (time.process_time() - c0) / max(len(out), 1)
@@ -284,6 +289,24 @@ def run(ctx: StageContext) -> None:
     ws.write_json(L.GLOBAL_REPORT, report)
     log.info("global_mesh: %d views, %s mesh %d faces, %.1f s", len(cams), dense, len(mesh.faces),
              report["timings"]["total_s"])
+
+
+def _with_threads(threads: int, fn, *args):
+    """fn(*args) with torch at `threads` threads: a worker computes a view exactly as the
+    serial run does (its pool pins every library to its share of the cores first)."""
+    import torch
+    torch.set_num_threads(threads)
+    return fn(*args)
+
+
+def _pool_map(ex: LocalExecutor, threads: int):
+    """patchmatch_views' map_fn over the executor's workers; a failed view stops the stage."""
+    def run(fn, argsets):
+        for i, res, exc in ex.map_unordered(_with_threads, [(threads, fn, *a) for a in argsets]):
+            if exc is not None:
+                raise exc
+            yield i, res
+    return run
 
 
 def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
