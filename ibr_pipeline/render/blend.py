@@ -71,7 +71,7 @@ def edge_decay(edges: np.ndarray, decay_px: float = EDGE_DECAY_PX) -> np.ndarray
     e = np.asarray(edges)
     if e.ndim != 2:
         raise ValueError(f"edges must be (H, W), got {e.shape}")
-    if not e.any():
+    if not e.any() or decay_px <= 0:  # no decay: edge pixels keep their full weight too
         return np.ones(e.shape, np.float32)
     dist = cv2.distanceTransform((e == 0).astype(np.uint8), cv2.DIST_L2, 5)
     return _ramp(dist, decay_px).astype(np.float32)

@@ -144,4 +144,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="render_views", help="view selection and blending into novel views (Xu §5.1)",
-              config=RenderViewsConfig, version="5", run=run, inputs=inputs, outputs=outputs)
+              config=RenderViewsConfig, version="6", run=run, inputs=inputs, outputs=outputs)

@@ -45,6 +45,9 @@ def test_feather_and_edge_decay():
     assert e[10, 20] == 0 and e[10, 26] == 1 and 0 < e[10, 23] < 1 and 0 < e[10, 17] < 1
     a = blend.texture_alpha(edges)
     assert a.min() == pytest.approx(blend.WEIGHT_FLOOR)
+    # no decay (per-view visibility): the edge pixels themselves keep their full weight
+    assert np.array_equal(blend.edge_decay(edges, 0), np.ones((40, 40), np.float32))
+    assert blend.texture_alpha(edges, feather_px=0, decay_px=0).min() == 1.0
 
 
 def test_blend_and_fill_holes():
