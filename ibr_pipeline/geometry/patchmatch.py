@@ -57,7 +57,7 @@ _EPS = 1e-6        # z clamp in range-relative units (scale-free)
 class PatchMatchOptions(Options):
     """PatchMatch MVS (module docstring); depths are relative to each view's given range."""
 
-    iterations: int = param(3, "red/black propagation + refinement sweeps per level", min=1, max=20)
+    iterations: int = param(2, "red/black propagation + refinement sweeps per level", min=1, max=20)
     levels: int = param(2, "pyramid levels below the working size, solved coarse to fine (ACMM); "
                         "0 = single scale", min=0, max=6)
     window: int = param(7, "odd NCC window side in pixels (at every level)", min=3, max=31)

@@ -52,7 +52,9 @@ class GlobalMeshConfig(StageConfig):
                      "geometric consistency; geometry/patchmatch.py) or sweep (fronto-parallel "
                      "plane sweep, geometry/mvs.py)", choices=("patchmatch", "sweep"))
     patchmatch: PatchMatchOptions = param(PatchMatchOptions(), "PatchMatch MVS (mvs = patchmatch)")
-    mvs_scale: float = param(0.5, "MVS working resolution relative to the images", min=0.05, max=1.0)
+    mvs_scale: float = param(1.0, "MVS working resolution relative to the images (1 = full, as "
+                             "COLMAP; 0.5 is ~3x faster and less accurate: docs/GLOBAL_MESH.md)",
+                             min=0.05, max=1.0)
     mvs_sources: int = param(4, "MVS source views per reference view", min=1, max=16)
     mvs_depths: int = param(96, "plane sweep: hypotheses (uniform in inverse depth) of the full sweep",
                             min=4, max=512)
