@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 LAMBDA_REL = 0.01       # Xu §4.2.1: lambda = 0.01 * max(1, min(d_i, d_j))
+LAMBDA_REL_MVS = 0.05   # ours, where G came from multi-view stereo: about twice its depth
+                        # noise (~2-3 %), so that noise makes no edge (docs/VIEW_DEPTH.md)
 MASK_SIDE_M = 0.04      # Xu §4.2.1: fronto-parallel square patch of side 4 cm
 
 

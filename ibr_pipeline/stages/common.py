@@ -11,6 +11,14 @@ def registered_views(ctx) -> list[str]:
     return [n for n in ctx.scene.names if n in cams]
 
 
+def eq1_lambda(ctx, view: str) -> float:
+    """Eq. 1's lambda_rel for `view` in a stage whose config has lambda_rel (Xu's) and
+    lambda_rel_mvs: the latter when G came from multi-view stereo (global_mesh wrote the view's
+    MVS depth map, which such a stage then lists among its inputs)."""
+    cfg = ctx.config
+    return cfg.lambda_rel_mvs if ctx.ws.exists(L.mvs_depth_file(view)) else cfg.lambda_rel
+
+
 def input_cameras(ctx, key: str) -> dict:
     """{name: Camera} of an input camera file (gt/test_cameras.json, ...) mapped into the scene
     frame: by the Sim(3) from the true to the SfM frame when the poses came from SfM and the

@@ -17,7 +17,8 @@ from .. import layout as L
 from ..cache import ProcessCache, file_key
 from ..config import StageConfig, param
 from ..runner import Stage, StageContext
-from .common import registered_views
+from ..geometry import depth_edges as de
+from .common import eq1_lambda, registered_views
 
 OUTPUTS = (L.DEPTH_INIT, L.DEPTH, L.NORMAL, L.EDGES, L.REFINE_MASK, L.DEPTH_REPORT)
 
@@ -25,7 +26,10 @@ OUTPUTS = (L.DEPTH_INIT, L.DEPTH, L.NORMAL, L.EDGES, L.REFINE_MASK, L.DEPTH_REPO
 @dataclass(frozen=True)
 class ViewDepthConfig(StageConfig):
     lambda_rel: float = param(0.01, "Eq. 1 threshold: lambda = lambda_rel * max(1, min(d_i, d_j)) "
-                              "(Xu §4.2.1: 0.01)", min=1e-4, max=0.5)
+                              "(Xu §4.2.1: 0.01), where G was fused from depth frames", min=1e-4, max=0.5)
+    lambda_rel_mvs: float = param(de.LAMBDA_REL_MVS, "Eq. 1 threshold where G came from multi-view "
+                                  "stereo (the view has global/mvs depth; ours: MVS depth is noisier "
+                                  "than 1 %, docs/VIEW_DEPTH.md)", min=1e-4, max=0.5)
     mask_side_m: float = param(0.04, "side of the fronto-parallel refinement square around each "
                                "depth-edge pixel, metres (Xu §4.2.1: 4 cm)", min=0.001, max=1.0)
     mask_min_half_px: int = param(1, "smallest half side of the mask square, pixels", min=0, max=32)
@@ -170,7 +174,7 @@ def view_inputs(ctx: StageContext, view: str) -> list[str]:
     keys = [scene.view(view).image] + [scene.view(s).image for s in _sources(ctx, view)]
     if ctx.ws.exists(_strokes_key(ctx, view)):
         keys.append(_strokes_key(ctx, view))
-    if ctx.config.complete and ctx.ws.exists(L.mvs_depth_file(view)):
+    if ctx.ws.exists(L.mvs_depth_file(view)):  # completion reads it; its presence picks lambda
         keys.append(L.mvs_depth_file(view))
     return keys
 
@@ -237,6 +241,7 @@ def _run(ctx: StageContext, view: str) -> None:
 
     t0, c0 = time.perf_counter(), time.process_time()
     ws, cfg = ctx.ws, ctx.config
+    lam = eq1_lambda(ctx, view)
     cams = L.registered_cameras(ws)
     cam = cams[view]
     image = read_image(ws.path(ctx.scene.view(view).image))
@@ -264,7 +269,7 @@ def _run(ctx: StageContext, view: str) -> None:
     rs, rr = ramp_scale(cam.width, g_voxel), ramp_ratio(cam.width, g_voxel)
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
     t = time.perf_counter()
-    det = dr.detect(depth0, cam, cfg.lambda_rel, cfg.mask_side_m, cfg.mask_min_half_px)
+    det = dr.detect(depth0, cam, lam, cfg.mask_side_m, cfg.mask_min_half_px)
     mask = det.mask & (depth0 > 0)
     rounded = rounded_all = np.zeros_like(mask)
     if cfg.rounded_steps:
@@ -273,7 +278,7 @@ def _run(ctx: StageContext, view: str) -> None:
         from ..geometry.depth_edges import refinement_mask
         from ..geometry.depth_rounded import canny_edges, rounded_steps
         strides = tuple(rs * int(s) for s in cfg.rounded_strides)
-        rounded_all = rounded_steps(depth0, det.points, det.normals, canny_edges(image), cfg.lambda_rel,
+        rounded_all = rounded_steps(depth0, det.points, det.normals, canny_edges(image), lam,
                                     strides, cfg.rounded_min_rel)
         rounded = rounded_all & ~mask
         if rounded.any():
@@ -311,7 +316,7 @@ def _run(ctx: StageContext, view: str) -> None:
                             device=cfg.device, check=cfg.mvs_check,
                             check_radius=px * cfg.mvs_check_radius,
                             min_change=cfg.mvs_min_change, guard_px=px * cfg.mvs_edge_guard,
-                            lambda_rel=cfg.lambda_rel, protect=protect,
+                            lambda_rel=lam, protect=protect,
                             trust_g=trust, distrust_g=ramp)
         accepted = res.accepted
         depth1[accepted] = res.depth[accepted]
@@ -322,7 +327,7 @@ def _run(ctx: StageContext, view: str) -> None:
     region = mask & ~accepted
     barrier = strokes
     if cfg.edge_barrier:  # G's own occlusion edges as automatic strokes (see the config help)
-        e = dr.detect(depth1, cam, cfg.lambda_rel, with_mask=False).edge_pixels
+        e = dr.detect(depth1, cam, lam, with_mask=False).edge_pixels
         barrier = e if strokes is None else (strokes | e)
     depth2, filled, _ = dr.refine(depth1, cam, image, region, barrier, cfg.cost_base, cfg.cost_edge,
                                   cfg.neighbours, boundary_radius=px * cfg.edge_boundary_radius)
@@ -343,7 +348,7 @@ def _run(ctx: StageContext, view: str) -> None:
     timings["complete_ms"] = 1000 * (time.perf_counter() - t)
     if not np.all(np.isfinite(depth2)):
         raise RuntimeError("refined depth has non-finite values")
-    final = dr.detect(depth2, cam, cfg.lambda_rel, with_mask=False)  # edges.png: Eq. 1 on the result
+    final = dr.detect(depth2, cam, lam, with_mask=False)  # edges.png: Eq. 1 on the result
     normal_w = world_normals(final.normals, cam).astype(np.float32)   # = normals_from_depth(depth2)
     vd = ws.view_dir(view)
     with ws.atomic_write(f"{vd}/{L.DEPTH_INIT}") as f:
@@ -356,7 +361,7 @@ def _run(ctx: StageContext, view: str) -> None:
     write_image(ws.path(f"{vd}/{L.REFINE_MASK}"), (mask * 255).astype(np.uint8))
     ms = 1000 * (time.perf_counter() - t0)
     ws.write_json(f"{vd}/{L.DEPTH_REPORT}", {
-        "view": view, "size": [cam.width, cam.height], "pixel_scale": px,
+        "view": view, "size": [cam.width, cam.height], "lambda_rel": lam, "pixel_scale": px,
         "ramp_scale": rs,
         "edge_pixels_init": int(det.edge_pixels.sum()), "edge_pixels": int(final.edge_pixels.sum()),
         "mask_pixels": int(mask.sum()), "rounded_step_pixels": int(rounded.sum()), "mvs_accepted": int(accepted.sum()),
@@ -369,6 +374,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="7", run=run, per_view=True,
+              config=ViewDepthConfig, version="8", run=run, per_view=True,
               inputs=(L.REGISTERED_CAMERAS, L.GLOBAL_MESH), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)

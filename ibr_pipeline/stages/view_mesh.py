@@ -12,7 +12,8 @@ from dataclasses import dataclass
 from .. import layout as L
 from ..config import StageConfig, param
 from ..runner import Stage, StageContext
-from .common import registered_views
+from ..geometry import depth_edges as de
+from .common import eq1_lambda, registered_views
 
 
 @dataclass(frozen=True)
@@ -25,7 +26,11 @@ class ViewMeshConfig(StageConfig):
     min_vertices: int = param(200, "never simplify below this many vertices", min=3, max=1_000_000)
     tol_score: float = param(0.002, "adaptive target: accept a coarser mesh while its mean relative "
                              "depth error (misses count 5 per cent) grows by at most this", min=0.0, max=0.05)
-    lambda_rel: float = param(0.01, "Eq. 1 threshold for the cuts (Xu §4.2.1: 0.01)", min=1e-4, max=0.5)
+    lambda_rel: float = param(de.LAMBDA_REL, "Eq. 1 threshold for the cuts (Xu §4.2.1: 0.01), where G "
+                              "was fused from depth frames", min=1e-4, max=0.5)
+    lambda_rel_mvs: float = param(de.LAMBDA_REL_MVS, "Eq. 1 threshold for the cuts where G came from "
+                                  "multi-view stereo (ours, as view_depth.lambda_rel_mvs)",
+                                  min=1e-4, max=0.5)
     agg: float = param(7.0, "fast-simplification aggressiveness", min=0.0, max=10.0)
     premerge_tol: float = param(1e-3, "planar pre-merge before the simplification (ours, "
                                 "geometry/grid_faces.py): blocks of pixel squares whose depth is "
@@ -38,7 +43,6 @@ def run(ctx: StageContext, view: str) -> None:
     import numpy as np
 
     from ..errors import InputError
-    from ..geometry import depth_edges as de
     from ..geometry.grid_mesh import grid_mesh, simplify_adaptive
     from ..geometry.normals import normals_from_points, points_from_depth
     from ..io.images import read_image
@@ -60,7 +64,7 @@ def run(ctx: StageContext, view: str) -> None:
         raise InputError(f"{ws.path(f'{vd}/edges.png')}: size differs from depth.npy")
     P = points_from_depth(depth, cam.K)
     N = normals_from_points(P, depth > 0)
-    pairs = de.depth_edges(P, N, depth, cfg.lambda_rel)  # cuts: Eq. 1 pairs of the refined depth
+    pairs = de.depth_edges(P, N, depth, eq1_lambda(ctx, view))  # cuts: Eq. 1 pairs of the refined depth
     # the grid mesh's own depth is known exactly (vertices at the pixel centres): no ray cast of
     # its ~600 k triangles at 640x480 for the base score (that ray cast was the stage's largest cost)
     v, f, grid_depth, premerge = grid_mesh(depth, cam, pairs, return_depth=True,
@@ -78,9 +82,17 @@ def run(ctx: StageContext, view: str) -> None:
         "cpu_ms": round(1000 * (time.process_time() - c0), 1)})
 
 
+def view_inputs(ctx: StageContext, view: str) -> list[str]:
+    vd = ctx.ws.view_dir(view)
+    keys = [f"{vd}/{L.DEPTH}", f"{vd}/{L.EDGES}"]
+    if ctx.ws.exists(L.mvs_depth_file(view)):  # its presence picks Eq. 1's lambda (eq1_lambda)
+        keys.append(L.mvs_depth_file(view))
+    return keys
+
+
 STAGE = Stage(name="view_mesh", help="quadric-simplified per-view meshes cut along occlusion edges",
-              config=ViewMeshConfig, version="4", run=run, per_view=True,
+              config=ViewMeshConfig, version="5", run=run, per_view=True,
               inputs=(L.REGISTERED_CAMERAS,),
-              view_inputs=("{view_dir}/" + L.DEPTH, "{view_dir}/" + L.EDGES),
+              view_inputs=view_inputs,
               view_outputs=("{view_dir}/" + L.MESH, "{view_dir}/" + L.MESH_REPORT),
               views=registered_views)
