@@ -25,7 +25,7 @@ OUTPUTS = (L.DEPTH_INIT, L.DEPTH, L.NORMAL, L.EDGES, L.REFINE_MASK, L.DEPTH_REPO
 
 @dataclass(frozen=True)
 class ViewDepthConfig(StageConfig):
-    lambda_rel: float = param(0.01, "Eq. 1 threshold: lambda = lambda_rel * max(1, min(d_i, d_j)) "
+    lambda_rel: float = param(de.LAMBDA_REL, "Eq. 1 threshold: lambda = lambda_rel * max(1, min(d_i, d_j)) "
                               "(Xu §4.2.1: 0.01), where G was fused from depth frames", min=1e-4, max=0.5)
     lambda_rel_mvs: float = param(de.LAMBDA_REL_MVS, "Eq. 1 threshold where G came from multi-view "
                                   "stereo (the view has global/mvs depth; ours: MVS depth is noisier "
