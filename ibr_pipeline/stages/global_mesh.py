@@ -185,7 +185,7 @@ def _mvs_depths(ctx, cams, ranges, report) -> dict:
                 res = patchmatch_views(imgs, wcams, sources, view_range, cfg.patchmatch,
                                        device=cfg.device, progress=show,
                                        map_fn=None if ex.jobs == 1 else _pool_map(ex, cfg.threads))
-            report["mvs_workers"] = ex.jobs
+            report["timings"]["mvs_workers"] = ex.jobs  # how it ran, like the seconds
             out = {n: (r.depth.astype(np.float32), wcams[n]) for n, r in res.items()}
             report["timings"]["mvs_s_per_view"] = (time.perf_counter() - t0) / max(len(out), 1)
             report["timings"]["mvs_cpu_s_per_view"] = (time.process_time() - c0) / max(len(out), 1)
