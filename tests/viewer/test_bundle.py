@@ -148,9 +148,11 @@ def test_ibr_view_prints_its_url_serves_and_stops_on_ctrl_c(layered_ws, tmp_path
     import urllib.request
     ws_dir = tmp_path / "ws"
     shutil.copytree(layered_ws, ws_dir, ignore=shutil.ignore_patterns("export"))
+    # SIGINT as a terminal delivers it: a suite started in the background by a non-interactive
+    # shell (`sh -c "make test" &`) passes SIGINT on ignored, and Python then installs no handler
     p = subprocess.Popen([sys.executable, "-m", "ibr_pipeline", "view", str(ws_dir), "--port", "0",
                           "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
+                         text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         lines = [p.stdout.readline(), p.stdout.readline()]
         assert "web bundle written" in lines[0]
