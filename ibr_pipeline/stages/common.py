@@ -19,6 +19,19 @@ def eq1_lambda(ctx, view: str) -> float:
     return cfg.lambda_rel_mvs if ctx.ws.exists(L.mvs_depth_file(view)) else cfg.lambda_rel
 
 
+def is_identity(m: dict | None) -> bool:
+    """A poses-report similarity ({scale, R, t}) that changes nothing (None: no map)."""
+    import numpy as np
+    return not m or (m["scale"] == 1.0 and np.allclose(m["R"], np.eye(3)) and not np.any(m["t"]))
+
+
+def scene_is_input_frame(ctx) -> bool:
+    """The scene frame is the input's own (given poses, kept as they are): what lives in the
+    input's frame (its ground truth) can be rendered with the scene's cameras."""
+    frame = L.poses_report(ctx.ws)
+    return frame.get("pose_source") != "sfm" and is_identity(frame.get("transform"))
+
+
 def input_cameras(ctx, key: str) -> dict:
     """{name: Camera} of an input camera file (gt/test_cameras.json, ...) mapped into the scene
     frame: by the Sim(3) from the true to the SfM frame when the poses came from SfM and the
@@ -33,7 +46,7 @@ def input_cameras(ctx, key: str) -> dict:
     cams = cameras_from_json(p)
     frame = L.poses_report(ctx.ws)
     m = frame.get("gt_to_scene") if frame.get("pose_source") == "sfm" else frame.get("transform")
-    if not m or (m["scale"] == 1.0 and np.allclose(m["R"], np.eye(3)) and not np.any(m["t"])):
+    if is_identity(m):
         return cams
     R, t = np.asarray(m["R"], np.float64), np.asarray(m["t"], np.float64)
     return {n: transform_camera(c, float(m["scale"]), R, t) for n, c in cams.items()}

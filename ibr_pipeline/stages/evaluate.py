@@ -30,6 +30,7 @@ from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import InputError
 from ..runner import Stage, StageContext
+from .common import scene_is_input_frame
 
 log = logging.getLogger("ibr_pipeline.evaluate")
 
@@ -339,8 +340,9 @@ def _oracle_model(ctx: StageContext):
     root = ctx.ws.input_root
     if not (root / "gt" / "geom").is_dir() or not (root / "gt" / "mesh.ply").is_file():
         return None
-    # the oracle lives in the true frame: only where the scene frame is that frame (given poses)
-    if not (root / "cameras.json").is_file() or L.poses_report(ctx.ws).get("pose_source") == "sfm":
+    # the oracle lives in the true frame: only where the scene frame is that frame (given poses,
+    # not normalised: without depth frames the poses stage rescales even given poses)
+    if not (root / "cameras.json").is_file() or not scene_is_input_frame(ctx):
         return None
     return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer)
 
@@ -371,4 +373,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="5", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="6", run=run, inputs=inputs, outputs=outputs)
