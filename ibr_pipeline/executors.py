@@ -26,6 +26,14 @@ class Executor:
     def map_unordered(self, fn: Callable, argsets: Sequence[tuple]) -> Iterator[tuple]:
         raise NotImplementedError
 
+    def results(self, fn: Callable, argsets: Sequence[tuple]) -> Iterator[tuple]:
+        """(index, fn(*argsets[index])) as tasks finish; the first failed task's exception is
+        raised (whole-scene stages, where one failed piece fails the stage)."""
+        for i, res, exc in self.map_unordered(fn, argsets):
+            if exc is not None:
+                raise exc
+            yield i, res
+
     def close(self) -> None:
         pass
 

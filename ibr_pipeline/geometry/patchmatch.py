@@ -491,13 +491,6 @@ def _solve(ref_gray, ref_cam, srcs, lo, hi, opts, dev, seed, init=None, sweeps=N
             st.cost.reshape(m.H, m.W).cpu().numpy().astype(np.float32))
 
 
-def solve_view(ref_gray, ref_cam, srcs, lo, hi, opts, dev, seed, init=None, sweeps=None, first=0):
-    """One view's PatchMatch (`_solve`'s arguments and result): the task `patchmatch_views`
-    hands to its map_fn, a module-level function so that worker processes can unpickle it."""
-    return _solve(ref_gray, ref_cam, srcs, lo, hi, opts, dev, seed, init=init, sweeps=sweeps,
-                  first=first)
-
-
 def _thresholded(raw, opts: PatchMatchOptions) -> PatchMatchResult:
     """Result with depth and normal zeroed where the cost exceeds opts.max_cost."""
     depth, normal, cost = raw
@@ -627,7 +620,7 @@ def patchmatch_views(images: dict[str, np.ndarray], cams: dict[str, Camera],
 
     def one_pass(argsets):
         res = [None] * len(argsets)
-        for i, r in run(solve_view, argsets):
+        for i, r in run(_solve, argsets):  # module-level: worker processes unpickle it
             res[i] = r
             tick()
         return dict(zip(names, res))

@@ -303,12 +303,7 @@ def _with_threads(threads: int, fn, *args):
 
 def _pool_map(ex: LocalExecutor, threads: int):
     """patchmatch_views' map_fn over the executor's workers; a failed view stops the stage."""
-    def run(fn, argsets):
-        for i, res, exc in ex.map_unordered(_with_threads, [(threads, fn, *a) for a in argsets]):
-            if exc is not None:
-                raise exc
-            yield i, res
-    return run
+    return lambda fn, argsets: ex.results(_with_threads, [(threads, fn, *a) for a in argsets])
 
 
 def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:

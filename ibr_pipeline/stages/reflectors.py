@@ -51,13 +51,10 @@ def _score_all(ctx: StageContext):
                 tqdm(total=len(cands), desc="reflectors: candidate planes", unit="plane",
                      disable=not ctx.progress, leave=False) as bar:
             if ex.jobs == 1:
-                results = ((i, score_plane(loader, c), None) for i, c in enumerate(cands))
+                results = ((i, score_plane(loader, c)) for i, c in enumerate(cands))
             else:
-                results = ex.map_unordered(_score_task, [(ctx.ws, ctx.scene, ctx.config, c)
-                                                         for c in cands])
-            for i, res, exc in results:
-                if exc is not None:
-                    raise exc
+                results = ex.results(_score_task, [(ctx.ws, ctx.scene, ctx.config, c) for c in cands])
+            for i, res in results:
                 out[i] = res
                 bar.update(1)
         return out
