@@ -12,7 +12,8 @@ cameras.json format, so `evaluate` and `ibr render` know what was rendered):
   tour         `tour_frames` frames on a smooth path through the fly-through (else the registered)
                cameras: the video of evaluate and the report, long enough to watch
   loo          leave-one-out renders of every capture view (`leave_one_out`; supersample trains on them)
-Single-layer rendering is used throughout when `reflection` has not run.
+Single-layer rendering is used throughout when `reflection` has not run; when no view has a
+reflection layer the `<set>_single` renders are copies of `<set>` (the same model renders them).
 """
 from __future__ import annotations
 
@@ -111,12 +112,17 @@ def run(ctx: StageContext) -> None:
     settings = ctx.config.renderer
     sets = render_sets(ctx)
     models = {True: IBRModel.load(ws, layers=True, settings=settings, progress=progress)}
-    if any(not spec.get("layers", True) for spec in sets.values()):
-        models[False] = IBRModel.load(ws, layers=False, settings=settings, progress=progress)
     two = sum(v.layers[1] is not None for v in models[True].views)
+    if two and any(not spec.get("layers", True) for spec in sets.values()):
+        models[False] = IBRModel.load(ws, layers=False, settings=settings, progress=progress)
     log.info("render_views: %d views (%d with a reflection layer), GL: %s", len(models[True].views),
              two, renderer_name())
     for s, spec in sets.items():
+        if not spec.get("layers", True) and not two:
+            # no view has a second layer: the single-layer model is the same model, so its
+            # renders are the layered set's (rendered first: `<set>` precedes `<set>_single`)
+            _copy_set(ws, s.removesuffix("_single"), s, len(spec["cameras"]))
+            continue
         model = models[spec.get("layers", True)]
         frames, prev = [], None
         sequential = s.startswith(("fly", "tour"))
@@ -143,5 +149,16 @@ def run(ctx: StageContext) -> None:
         m.release()
 
 
+def _copy_set(ws, src: str, dst: str, n: int) -> None:
+    import json
+    for name in [f"{i:04d}.png" for i in range(n)] + ["cameras.json"]:
+        with ws.atomic_write(L.render_file(dst, name)) as f:
+            f.write(ws.path(L.render_file(src, name)).read_bytes())
+    timings = json.loads(ws.path(L.render_file(src, "timings.json")).read_text())
+    ws.write_json(L.render_file(dst, "timings.json"), {**timings, "set": dst, "copied_from": src})
+    log.info("render_views: %-12s %3d frames, copied from %s (no view has a reflection layer)",
+             dst, n, src)
+
+
 STAGE = Stage(name="render_views", help="view selection and blending into novel views (Xu §5.1)",
-              config=RenderViewsConfig, version="6", run=run, inputs=inputs, outputs=outputs)
+              config=RenderViewsConfig, version="7", run=run, inputs=inputs, outputs=outputs)

@@ -97,6 +97,28 @@ def test_single_layer_workspace_renders(tiny_scene, tmp_path):
     model.release()
 
 
+def test_without_reflection_layers_single_sets_are_the_layered_renders(tiny_scene, tmp_path):
+    """No view has a second layer: `<set>_single` is copied from `<set>`, and is what the
+    single-layer model renders."""
+    ws = tmp_path / "nolayers"
+    write_gt_workspace(tiny_scene[0], ws, "view_mesh", global_mesh="none")
+    assert main(["-q", "render_views", str(ws), "--no-progress"]) == 0
+    for s in ("test", "fly"):
+        a, b = sorted((ws / "renders" / s).glob("*.png")), sorted((ws / "renders" / f"{s}_single").glob("*.png"))
+        assert len(a) == len(b) > 0 and all(x.read_bytes() == y.read_bytes() for x, y in zip(a, b))
+        t = json.loads((ws / "renders" / f"{s}_single" / "timings.json").read_text())
+        assert t["set"] == f"{s}_single" and t["copied_from"] == s and not t["layers"]
+    from ibr_pipeline.render.ibr import IBRModel
+    from ibr_pipeline.scene import cameras_from_json
+    from ibr_pipeline.workspace import Workspace
+    cam = next(iter(cameras_from_json(ws / "renders" / "test_single" / "cameras.json").values()))
+    model = IBRModel.load(Workspace(ws), layers=False)
+    f = model.render(cam)
+    model.release()
+    got = read_image(ws / "renders" / "test_single" / "0000.png")
+    assert np.abs(np.clip(f.color, 0, 1) - got).max() < 2.0 / 255
+
+
 def test_leave_one_out_when_input_has_no_test_cameras(tiny_scene, tmp_path):
     src = tmp_path / "input"
     shutil.copytree(tiny_scene[0], src)
