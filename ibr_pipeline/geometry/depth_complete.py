@@ -7,7 +7,12 @@ view without depth there renders as hole fill. `complete_depth` fills those pixe
 1. the view's own multi-view-stereo depth, where it has one (the depth maps G was fused from,
    `global_mesh`), agreeing with nothing else to check it against but already filtered for
    multi-view consistency;
-2. edge-aware propagation from the pixels with depth (Xu §4.2.2's cost map: colour edges are
+2. (optional, `planes`) piecewise planes over colour segments: a segment of the image
+   (Felzenszwalb & Huttenlocher 2004) whose known depths a single 3-D plane explains takes that
+   plane where it has none — the superpixel planar prior of TAPA-MVS (Romanoni & Matteucci 2019)
+   for the textureless regions PatchMatch leaves empty (ceiling panels, walls, doors), where the
+   membrane below would bend the surface towards whatever the hole's border touches;
+3. edge-aware propagation from the pixels with depth (Xu §4.2.2's cost map: colour edges are
    expensive to cross, so a hole takes the depth of the surface it belongs to): the membrane
    (weighted Laplace) interpolation of inverse depth over the hole with the known depths as the
    boundary, link weights exp(-cost) of Eq. 2's geodesic step cost. Unlike Eq. 2's k nearest
@@ -19,18 +24,23 @@ Pixels no seed reaches keep 0. Pure functions: (H, W) arrays in, arrays out.
 """
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+
 import numpy as np
 
+from ..config import Options, param
 from ..scene import Camera
 from . import geodesic as geo
 
 
 def complete_depth(depth: np.ndarray, camera: Camera, image: np.ndarray, mvs_depth: np.ndarray | None = None,
-                   cost_edge: float = 15.0, boundary_radius: int = 0, strokes: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, dict]:
-    """(completed depth (H, W) float64, {"mvs": (H, W) bool, "interpolated": (H, W) bool}: which
+                   cost_edge: float = 15.0, boundary_radius: int = 0, strokes: np.ndarray | None = None,
+                   planes: "PlaneOptions | None" = None) -> tuple[np.ndarray, dict]:
+    """(completed depth (H, W) float64, {"mvs", "planes", "interpolated": (H, W) bool}: which
     empty pixels of `depth` (<= 0) each step filled). `mvs_depth` (any size of the same aspect,
-    0 = none) is resized to the view with nearest-neighbour sampling."""
+    0 = none) is resized to the view with nearest-neighbour sampling; `planes` None = no
+    segment-plane step."""
     d = np.asarray(depth, dtype=np.float64)
     if d.ndim != 2:
         raise ValueError(f"depth must be (H, W), got {d.shape}")
@@ -45,6 +55,9 @@ def complete_depth(depth: np.ndarray, camera: Camera, image: np.ndarray, mvs_dep
         m = _resize_nearest(np.asarray(mvs_depth, np.float64), w, h)
         from_mvs = (out <= 0) & np.isfinite(m) & (m > 0)
         out[from_mvs] = m[from_mvs]
+    from_planes = np.zeros((h, w), bool)
+    if planes is not None and (out <= 0).any():
+        out, from_planes = segment_planes(out, image, planes)
     holes = out <= 0
     interp = np.zeros((h, w), bool)
     if holes.any() and (~holes).any():
@@ -53,7 +66,83 @@ def complete_depth(depth: np.ndarray, camera: Camera, image: np.ndarray, mvs_dep
                                      edge_weights(edges, cost_edge))
         interp = holes & reached & (inv > 0)
         out[interp] = 1.0 / inv[interp]
-    return out, {"mvs": from_mvs, "interpolated": interp}
+    return out, {"mvs": from_mvs, "planes": from_planes, "interpolated": interp}
+
+
+@dataclass(frozen=True)
+class PlaneOptions(Options):
+    """Segment-plane completion (`view_depth.planes`). Pixel counts are given at 320x240 (the
+    stage scales them with the pixel count), tolerances relative (scale-free)."""
+
+    segment_scale: float = param(200.0, "Felzenszwalb's k: larger = larger segments", min=1.0,
+                                 max=100000.0)
+    min_segment_px: int = param(40, "smallest segment, pixels at 320x240 (Felzenszwalb's "
+                                "min_size)", min=1, max=100000)
+    min_inliers: int = param(20, "known pixels on a segment's plane, at least (pixels at "
+                             "320x240)", min=3, max=100000)
+    inlier_share: float = param(0.6, "... and at least this share of the segment's known pixels",
+                                min=0.0, max=1.0)
+    tol_rel: float = param(0.03, "inlier: |1/z - plane| <= tol_rel / z (our MVS depth is noisy at "
+                           "2-3 %)", min=0.001, max=0.5)
+    hypotheses: int = param(64, "RANSAC samples per segment", min=1, max=10000)
+    seed: int = param(0, "seed of the RANSAC samples", min=0, max=2**31 - 1)
+
+    def scaled(self, area: float) -> "PlaneOptions":
+        """The pixel counts for an image `area` times the pixels of 320x240."""
+        return dataclasses.replace(self, min_segment_px=max(1, round(self.min_segment_px * area)),
+                                   min_inliers=max(3, round(self.min_inliers * area)))
+
+
+def segment_planes(depth: np.ndarray, image: np.ndarray, opts: PlaneOptions
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(depth with the empty pixels (<= 0) of planar segments filled, filled (H, W) bool).
+
+    A plane in camera space is affine in the image in inverse depth (1/z = a u + b v + c), so the
+    fit is linear: RANSAC over 3-pixel samples, then least squares on the inliers. A segment is
+    filled only where its plane explains `inlier_share` of its known pixels, and only with
+    inverse depths within [0.8, 1.25] x the inliers' range, so a plane fitted to a strip of
+    known pixels does not run off to infinity across the rest of the segment."""
+    from skimage.segmentation import felzenszwalb
+
+    d = np.asarray(depth, np.float64)
+    img = np.asarray(image)
+    if d.ndim != 2 or img.shape[:2] != d.shape:
+        raise ValueError(f"depth (H, W) and image (H, W[, C]) disagree: {d.shape}, {img.shape}")
+    h, w = d.shape
+    seg = felzenszwalb(img, scale=opts.segment_scale, sigma=0.8, min_size=opts.min_segment_px,
+                       channel_axis=-1 if img.ndim == 3 else None).ravel()
+    flat = d.ravel()
+    known = flat > 0
+    order = np.argsort(seg, kind="stable")
+    bounds = np.flatnonzero(np.diff(seg[order])) + 1
+    u = (np.arange(h * w) % w).astype(np.float64)
+    v = (np.arange(h * w) // w).astype(np.float64)
+    rng = np.random.default_rng(opts.seed)
+    out = flat.copy()
+    filled = np.zeros(h * w, bool)
+    for pix in np.split(order, bounds):
+        kn, un = pix[known[pix]], pix[~known[pix]]
+        if len(un) == 0 or len(kn) < max(3, opts.min_inliers):
+            continue
+        A = np.stack([u[kn], v[kn], np.ones(len(kn))], 1)
+        y = 1.0 / flat[kn]
+        samples = np.stack([rng.choice(len(kn), 3, replace=False) for _ in range(opts.hypotheses)])
+        M = A[samples]                                   # (n, 3, 3)
+        ok = np.abs(np.linalg.det(M)) > 1e-9
+        if not ok.any():
+            continue
+        p = np.linalg.solve(M[ok], y[samples[ok]][..., None])[..., 0]   # (n, 3)
+        inl = np.abs(A @ p.T - y[:, None]) <= opts.tol_rel * y[:, None]  # (k, n)
+        best = inl[:, int(inl.sum(0).argmax())]
+        if best.sum() < max(opts.min_inliers, opts.inlier_share * len(kn)):
+            continue
+        plane = np.linalg.lstsq(A[best], y[best], rcond=None)[0]
+        pred = np.stack([u[un], v[un], np.ones(len(un))], 1) @ plane
+        lo, hi = y[best].min(), y[best].max()
+        take = (pred > 0.8 * lo) & (pred < 1.25 * hi)
+        out[un[take]] = 1.0 / pred[take]
+        filled[un[take]] = True
+    return out.reshape(h, w), filled.reshape(h, w)
 
 
 def edge_weights(edges: np.ndarray, cost_edge: float) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,7 @@ from ..cache import ProcessCache, file_key
 from ..config import StageConfig, param
 from ..runner import Stage, StageContext
 from ..geometry import depth_edges as de
+from ..geometry.depth_complete import PlaneOptions
 from .common import eq1_lambda, registered_views
 
 OUTPUTS = (L.DEPTH_INIT, L.DEPTH, L.NORMAL, L.EDGES, L.REFINE_MASK, L.DEPTH_REPORT)
@@ -87,6 +88,10 @@ class ViewDepthConfig(StageConfig):
     complete: bool = param(True, "fill the pixels G leaves empty (ours, for RGB-only captures): "
                            "the view's own MVS depth, then edge-aware membrane interpolation of "
                            "the rest over Eq. 2's colour-edge cost map (geometry/depth_complete.py)")
+    complete_planes: bool = param(True, "completion: before the membrane, fill colour segments whose "
+                                  "known depths one plane explains with that plane (ours, after "
+                                  "TAPA-MVS's superpixel planes; geometry/depth_complete.py)")
+    planes: PlaneOptions = param(PlaneOptions(), "the segment planes of complete_planes")
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
                              "(<image stem>.png, white = edge)")
     device: str = param("cpu", "torch device for the plane sweep", choices=("cpu", "cuda"),
@@ -342,8 +347,9 @@ def _run(ctx: StageContext, view: str) -> None:
         if ws.exists(L.mvs_depth_file(view)):
             mvs_d = np.load(ws.path(L.mvs_depth_file(view)))
             mvs_d = mvs_d if mvs_d.any() else None
+        planes = cfg.planes.scaled(px * px) if cfg.complete_planes else None
         depth2, which = complete_depth(depth2, cam, image, mvs_d, cfg.cost_edge,
-                                       px * cfg.edge_boundary_radius, strokes)
+                                       px * cfg.edge_boundary_radius, strokes, planes)
         completed = {k: int(v.sum()) for k, v in which.items()}
     timings["complete_ms"] = 1000 * (time.perf_counter() - t)
     if not np.all(np.isfinite(depth2)):
@@ -374,6 +380,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="8", run=run, per_view=True,
+              config=ViewDepthConfig, version="9", run=run, per_view=True,
               inputs=(L.REGISTERED_CAMERAS, L.GLOBAL_MESH), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from ibr_pipeline.geometry.depth_complete import complete_depth, edge_weights, membrane_fill
+from ibr_pipeline.geometry.depth_complete import (PlaneOptions, complete_depth, edge_weights,
+                                                  membrane_fill, segment_planes)
 from ibr_pipeline.scene import Camera
 
 W, H = 64, 48
@@ -71,3 +72,66 @@ def test_bad_arguments_are_named():
         complete_depth(np.zeros((H + 1, W)), cam, np.zeros((H + 1, W, 3)))
     with pytest.raises(ValueError, match="aspect"):
         complete_depth(np.zeros((H, W)), cam, np.zeros((H, W, 3)), np.ones((10, 30)))
+
+
+def _two_region_scene(seed=0):
+    """Two colour regions (x < W/2 dark, else bright), each a different slanted plane; depth known
+    on 10 % random pixels of each (MVS on texture), the rest a hole."""
+    cam = _camera()
+    left = _plane_depth(cam, np.array([0.3, -0.4, 1.0]) / np.linalg.norm([0.3, -0.4, 1]), 2.0)
+    right = _plane_depth(cam, np.array([-0.5, 0.2, 1.0]) / np.linalg.norm([-0.5, 0.2, 1]), 3.5)
+    is_left = np.arange(W)[None, :] < W // 2
+    truth = np.where(is_left, left, right)
+    image = np.where(is_left[..., None], 0.2, 0.8) * np.ones((H, W, 3))
+    known = np.random.default_rng(seed).random((H, W)) < 0.1
+    return cam, truth, image, known, is_left
+
+
+def test_segment_planes_fill_each_region_with_its_own_plane():
+    cam, truth, image, known, is_left = _two_region_scene()
+    depth = np.where(known, truth, 0.0)
+    # a fifth of the left region's known depths are outliers: RANSAC keeps the plane
+    rng = np.random.default_rng(1)
+    bad = known & is_left & (rng.random((H, W)) < 0.2)
+    depth[bad] = rng.uniform(1.0, 5.0, int(bad.sum()))
+    out, filled = segment_planes(depth, image, PlaneOptions())
+    hole = ~known
+    # the blurred colour edge itself forms thin segments of its own, too small to fit
+    inner = hole & (np.abs(np.arange(W) - W // 2 + 0.5) > 3)[None, :]
+    assert filled[inner].all() and not filled[known].any()
+    err = np.abs(out - truth) / truth
+    assert err[inner & ~is_left].max() < 1e-6      # exact known depths: the plane itself
+    # outliers that happen to fall within tol_rel of the plane join the least-squares fit
+    assert err[inner & is_left].max() < 0.005
+    # through complete_depth the membrane has nothing left to do inside the regions
+    out2, which = complete_depth(depth, cam, image, planes=PlaneOptions())
+    assert which["planes"].sum() == filled.sum() and np.allclose(out2[filled], out[filled])
+
+
+def test_a_segment_no_plane_explains_is_left_to_the_membrane():
+    cam, truth, image, known, _ = _two_region_scene()
+    depth = np.where(known, np.random.default_rng(2).uniform(1.0, 4.0, (H, W)), 0.0)
+    out, filled = segment_planes(depth, image, PlaneOptions())
+    assert not filled.any() and np.array_equal(out, depth)
+    _, which = complete_depth(depth, cam, image, planes=PlaneOptions())
+    assert not which["planes"].any() and which["interpolated"][~known].mean() > 0.95
+
+
+def test_a_plane_is_not_extrapolated_beyond_its_known_depth_range():
+    """Known depths on a 3-pixel strip at the left edge of a steep plane: the rest of the segment
+    lies far outside their range and is not filled from them."""
+    cam = _camera()
+    truth = _plane_depth(cam, np.array([-0.9, 0.0, 0.45]) / np.linalg.norm([-0.9, 0, 0.45]), 1.0)
+    truth = np.where(truth > 0, truth, 0.0)
+    depth = np.zeros((H, W))
+    depth[:, :3] = truth[:, :3]
+    out, filled = segment_planes(depth, np.full((H, W, 3), 0.5), PlaneOptions())
+    inv = np.where(truth > 0, 1.0 / np.where(truth > 0, truth, 1.0), 0.0)
+    lo, hi = inv[:, :3].min(), inv[:, :3].max()
+    assert filled.any() and not filled[:, W // 2:].any()
+    assert np.all(1.0 / out[filled] > 0.8 * lo - 1e-9) and np.all(1.0 / out[filled] < 1.25 * hi + 1e-9)
+
+
+def test_segment_planes_checks_shapes():
+    with pytest.raises(ValueError, match="disagree"):
+        segment_planes(np.zeros((H, W)), np.zeros((H, W + 1, 3)), PlaneOptions())
