@@ -399,7 +399,7 @@ def aggregate(ref: ViewGeom, R: np.ndarray, nbs: list[ViewGeom], nb_R: dict[str,
         pos, vis = surface_flow(ref, nb, opts.visibility_tol)
         s = _sample_np(nb.image - nb_R[nb.name], pos)
         stack.append(np.where(vis[..., None], s, np.nan))
-    T0 = np.nanmedian(np.stack(stack), axis=0)  # Eq. 12
+    T0 = nanmedian0(np.stack(stack))  # Eq. 12
     T0 = np.where(ref.mask[..., None], T0, I)
     T1 = np.where(I - T0 - R < 0, I - T0, R)  # Eq. 13
     return T0, np.where(ref.mask[..., None], np.clip(T1, 0, None), 0.0)

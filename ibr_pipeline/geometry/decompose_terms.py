@@ -148,6 +148,24 @@ def sample_bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
             + ay * ((1 - ax) * img[y1, x0] + ax * img[y1, x1]))
 
 
+def nanmedian0(a: np.ndarray) -> np.ndarray:
+    """np.nanmedian(a, axis=0), bit for bit, for a small first axis (views): numpy takes a
+    masked-array path there that was the largest single cost of reflector detection. NaNs sort
+    last, so the median of the n valid values sits at (n - 1) // 2 and n // 2; NaN where n = 0."""
+    a = np.asarray(a)
+    if not np.issubdtype(a.dtype, np.floating):
+        a = a.astype(np.float64)
+    if a.ndim < 1 or a.shape[0] == 0:
+        raise ValueError(f"nanmedian0: need a non-empty first axis, got shape {a.shape}")
+    s = np.sort(a, axis=0)
+    n = (~np.isnan(a)).sum(0)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], 0)[0]
+    hi = np.take_along_axis(s, (n // 2)[None], 0)[0]
+    with np.errstate(invalid="ignore"):
+        med = (lo + np.where(n % 2 == 1, lo, hi)) / 2
+    return np.where(n > 0, med, np.nan).astype(a.dtype, copy=False)
+
+
 def rodrigues(w: np.ndarray) -> np.ndarray:
     """3x3 rotation of the axis-angle vector `w` (Rodrigues' formula)."""
     th = float(np.linalg.norm(w))

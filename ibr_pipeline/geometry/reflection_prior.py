@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose_terms import _nearest, depth_consistent, project, sample_bilinear
+from .decompose_terms import _nearest, depth_consistent, nanmedian0, project, sample_bilinear
 from .planes import mirror_matrix
 
 
@@ -91,11 +91,7 @@ def reflected_scene_colour(X1: np.ndarray, plane, views, tol: float = 0.03,
     if cols:
         st = np.stack(cols)
         n = np.isfinite(st[..., 0]).sum(0)
-        with np.errstate(all="ignore"):
-            import warnings
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                med = np.nanmedian(st, axis=0)
+        med = nanmedian0(st)
         med[n < min_views] = np.nan
         out[idx] = med
     return out.reshape(shp + (3,))
