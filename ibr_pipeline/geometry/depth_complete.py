@@ -36,7 +36,8 @@ from . import geodesic as geo
 
 def complete_depth(depth: np.ndarray, camera: Camera, image: np.ndarray, mvs_depth: np.ndarray | None = None,
                    cost_edge: float = 15.0, boundary_radius: int = 0, strokes: np.ndarray | None = None,
-                   planes: "PlaneOptions | None" = None) -> tuple[np.ndarray, dict]:
+                   planes: "PlaneOptions | None" = None, speckle_px: int = 0
+                   ) -> tuple[np.ndarray, dict]:
     """(completed depth (H, W) float64, {"mvs", "planes", "interpolated": (H, W) bool}: which
     empty pixels of `depth` (<= 0) each step filled). `mvs_depth` (any size of the same aspect,
     0 = none) is resized to the view with nearest-neighbour sampling; `planes` None = no
@@ -53,6 +54,8 @@ def complete_depth(depth: np.ndarray, camera: Camera, image: np.ndarray, mvs_dep
     from_mvs = np.zeros((h, w), bool)
     if mvs_depth is not None:
         m = _resize_nearest(np.asarray(mvs_depth, np.float64), w, h)
+        if speckle_px > 0:
+            m = remove_speckles(m, speckle_px)
         from_mvs = (out <= 0) & np.isfinite(m) & (m > 0)
         out[from_mvs] = m[from_mvs]
     from_planes = np.zeros((h, w), bool)
@@ -208,6 +211,23 @@ def membrane_fill(values: np.ndarray, unknown: np.ndarray, weights: tuple[np.nda
     x = spl.spsolve(A.tocsc(), rhs)
     out[solve] = x
     return out, solve
+
+
+def remove_speckles(depth: np.ndarray, max_px: int, rel: float = 0.02) -> np.ndarray:
+    """depth (H, W) with its speckles zeroed: connected regions of at most `max_px` pixels whose
+    neighbours differ by at most `rel` in relative depth (OpenCV's filterSpeckles, the stereo
+    matchers' filter, on log depth in steps of rel / 4)."""
+    import cv2
+    d = np.asarray(depth, np.float64)
+    ok = np.isfinite(d) & (d > 0)
+    if not ok.any():
+        return np.where(ok, d, 0.0)
+    q = np.zeros(d.shape, np.int16)
+    step = rel / 4
+    logd = np.log(d[ok])
+    q[ok] = np.clip(np.round((logd - logd.min()) / step) + 1, 1, 32000).astype(np.int16)
+    cv2.filterSpeckles(q, 0, int(max_px), 4)
+    return np.where(ok & (q > 0), d, 0.0)
 
 
 def _resize_nearest(a: np.ndarray, w: int, h: int) -> np.ndarray:

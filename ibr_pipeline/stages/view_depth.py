@@ -92,6 +92,9 @@ class ViewDepthConfig(StageConfig):
                                   "known depths one plane explains with that plane (ours, after "
                                   "TAPA-MVS's superpixel planes; geometry/depth_complete.py)")
     planes: PlaneOptions = param(PlaneOptions(), "the segment planes of complete_planes")
+    mvs_speckle_px: int = param(20, "completion: drop MVS depth regions of at most this many "
+                                "pixels (at 320x240) that no neighbour continues; 0 = off",
+                                min=0, max=100000)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
                              "(<image stem>.png, white = edge)")
     device: str = param("cpu", "torch device for the plane sweep", choices=("cpu", "cuda"),
@@ -349,7 +352,8 @@ def _run(ctx: StageContext, view: str) -> None:
             mvs_d = mvs_d if mvs_d.any() else None
         planes = cfg.planes.scaled(px * px) if cfg.complete_planes else None
         depth2, which = complete_depth(depth2, cam, image, mvs_d, cfg.cost_edge,
-                                       px * cfg.edge_boundary_radius, strokes, planes)
+                                       px * cfg.edge_boundary_radius, strokes, planes,
+                                       cfg.mvs_speckle_px * px * px)
         completed = {k: int(v.sum()) for k, v in which.items()}
     timings["complete_ms"] = 1000 * (time.perf_counter() - t)
     if not np.all(np.isfinite(depth2)):

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ibr_pipeline.geometry.depth_complete import (PlaneOptions, complete_depth, edge_weights,
-                                                  membrane_fill, segment_planes)
+                                                  membrane_fill, remove_speckles, segment_planes)
 from ibr_pipeline.scene import Camera
 
 W, H = 64, 48
@@ -135,3 +135,26 @@ def test_a_plane_is_not_extrapolated_beyond_its_known_depth_range():
 def test_segment_planes_checks_shapes():
     with pytest.raises(ValueError, match="disagree"):
         segment_planes(np.zeros((H, W)), np.zeros((H, W + 1, 3)), PlaneOptions())
+
+
+def test_speckles_of_wrong_depth_are_removed_surfaces_are_kept():
+    cam = _camera()
+    truth = _plane_depth(cam, np.array([0.3, -0.4, 1.0]) / np.linalg.norm([0.3, -0.4, 1]), 2.0)
+    d = truth.copy()
+    d[5, 5] = 9.0                 # one wrong pixel
+    d[20:23, 30:33] = 0.7         # a 3x3 blob of wrong matches
+    d[30:45, 5:25] = 1.2          # an object of 300 px in front of the plane: a surface
+    d[0, :] = 0                   # no depth
+    out = remove_speckles(d, 20)
+    assert out[5, 5] == 0 and np.all(out[20:23, 30:33] == 0)
+    keep = np.ones((H, W), bool)
+    keep[5, 5] = False
+    keep[20:23, 30:33] = False
+    keep[0] = False
+    # the slanted plane (neighbours < 2 % apart) stays one region, the object stays too
+    assert np.array_equal(out[keep], d[keep]) and np.all(out[0] == 0)
+    # through complete_depth: the speckles are not used, their pixels are interpolated
+    depth = np.zeros((H, W))
+    _, which = complete_depth(depth + np.where(np.arange(W) < 3, truth, 0), cam,
+                              np.full((H, W, 3), 0.5), d, speckle_px=20)
+    assert not which["mvs"][5, 5] and not which["mvs"][21, 31] and which["mvs"][35, 10]
