@@ -6,7 +6,8 @@ view without depth there renders as hole fill. `complete_depth` fills those pixe
 
 1. the view's own multi-view-stereo depth, where it has one (the depth maps G was fused from,
    `global_mesh`), agreeing with nothing else to check it against but already filtered for
-   multi-view consistency;
+   multi-view consistency; its speckles (`speckle_px`: small regions no neighbour continues,
+   wrong matches on textureless surfaces) are dropped first;
 2. (optional, `planes`) piecewise planes over colour segments: a segment of the image
    (Felzenszwalb & Huttenlocher 2004) whose known depths a single 3-D plane explains takes that
    plane where it has none — the superpixel planar prior of TAPA-MVS (Romanoni & Matteucci 2019)
