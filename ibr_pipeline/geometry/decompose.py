@@ -28,7 +28,7 @@ from ..config import Options, param
 from ..errors import ConfigError
 from ..scene import Camera
 from .decompose_terms import (DataTerm, ViewGeom, _nearest, _sample_np, bilinear_matrix,
-                              depth_consistent, pose_distance, project, rodrigues,
+                              depth_consistent, nanmedian0, pose_distance, project, rodrigues,
                               sample_bilinear)
 
 

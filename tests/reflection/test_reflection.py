@@ -265,3 +265,23 @@ def test_loader_footprints_and_simplified_m1(tiny_ws):
         checked += 1
     assert checked >= 1 and rendered >= 1
     assert len(loader._full) <= loader.GEOM_CACHE
+
+
+def test_multiview_second_pass_runs(tiny_ws, tmp_path):
+    """§4.3.3's second pass (decompose.multiview, off by default): non-mirror reflectors are
+    decomposed twice, the second time against the neighbours' first-pass layers (Eqs. 11-13)."""
+    import shutil
+
+    from ibr_pipeline.workspace import Workspace
+    _, ws = tiny_ws
+    ws2 = Workspace(shutil.copytree(ws.root, tmp_path / "mv"))
+    res = run_stage(ws2, {"detect": "off"}, {"decompose": {"multiview": True}})
+    assert res[-1].result == "ran", res
+    passes = set()
+    for layers in (ws2.root / "views").glob("*/layers.json"):
+        for r in json.loads(layers.read_text())["reflectors"]:
+            if not r.get("mirror") and r.get("history"):
+                passes |= {h.get("pass") for h in r["history"]}
+    assert passes == {1, 2}
+    for R in (ws2.root / "views").glob("*/*.npy"):
+        assert np.isfinite(np.load(R)).all(), R
