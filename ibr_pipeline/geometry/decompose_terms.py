@@ -148,6 +148,24 @@ def sample_bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
             + ay * ((1 - ax) * img[y1, x0] + ax * img[y1, x1]))
 
 
+def all_last(b: np.ndarray) -> np.ndarray:
+    """np.all(b, axis=-1) for a short last axis (x, y, z or RGB): numpy reduces along a short
+    trailing axis several times slower than it ANDs the columns, and the detection stage does it
+    on every view's full image per candidate plane."""
+    b = np.asarray(b, bool)
+    if b.ndim < 1 or b.shape[-1] == 0:
+        raise ValueError(f"all_last: need a non-empty last axis, got shape {b.shape}")
+    out = b[..., 0].copy()
+    for k in range(1, b.shape[-1]):
+        out &= b[..., k]
+    return out
+
+
+def any_last(b: np.ndarray) -> np.ndarray:
+    """np.any(b, axis=-1), the same way as all_last."""
+    return ~all_last(~np.asarray(b, bool))
+
+
 def nanmedian0(a: np.ndarray) -> np.ndarray:
     """np.nanmedian(a, axis=0), bit for bit, for a small first axis (views): numpy takes a
     masked-array path there that was the largest single cost of reflector detection. NaNs sort

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose_terms import _nearest, depth_consistent, nanmedian0, project, sample_bilinear
+from .decompose_terms import (_nearest, all_last, depth_consistent, nanmedian0, project,
+                              sample_bilinear)
 from .planes import mirror_matrix
 
 
@@ -22,7 +23,7 @@ def reflected_points(X1: np.ndarray, plane) -> tuple[np.ndarray, np.ndarray]:
     """The real points Xr = mirror(X1) (N, 3) of the finite mirror-world points of X1 (..., 3),
     and where those are in X1's flattened order (N,) indices."""
     flat = np.asarray(X1, np.float64).reshape(-1, 3)
-    idx = np.flatnonzero(np.all(np.isfinite(flat), axis=1))
+    idx = np.flatnonzero(all_last(np.isfinite(flat)))
     M = mirror_matrix(plane)
     return flat[idx] @ M[:3, :3].T + M[:3, 3], idx
 

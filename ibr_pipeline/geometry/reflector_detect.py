@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose_terms import (ViewGeom, _nearest, depth_consistent, pose_distance, project,
-                             remap_points)
+from .decompose_terms import (ViewGeom, _nearest, all_last, any_last, depth_consistent,
+                             pose_distance, project, remap_points)
 
 
 def warp_errors(ref: ViewGeom, nb: ViewGeom, tol: float = 0.05) -> tuple[float, float, int]:
@@ -126,7 +126,8 @@ def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, t
         Cv = colours.get(v.name)
         if Cv is None or v.mask.sum() < 50:
             continue
-        sel = v.mask & (v.D1 > 0) & np.all(np.isfinite(Cv), axis=2) & ~np.any(v.image >= saturation, axis=2)
+        sel = v.mask & (v.D1 > 0)
+        sel[sel] = all_last(np.isfinite(Cv[sel])) & ~any_last(v.image[sel] >= saturation)
         others = sorted((o for o in views if o is not v and o.name in colours and o.mask.sum() >= 50),
                         key=lambda o: pose_distance(v.camera, o.camera))[:neighbours]
         X0, Iv, Cs = v.X0[sel], v.image[sel], Cv[sel]  # the selected pixels only, in raster order
@@ -135,7 +136,7 @@ def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, t
             ok = depth_consistent(o.depth, p0, z0, tol) & _nearest(o.mask, p0, False)[0]
             Co = _nearest(colours[o.name], p0, np.nan)[0]
             Io = remap_points(o.image, p0)
-            ok &= np.all(np.isfinite(Co), axis=1) & ~np.any(Io >= saturation, axis=1)
+            ok &= all_last(np.isfinite(Co)) & ~any_last(Io >= saturation)
             if ok.sum() < 20:
                 continue
             dI.append((Iv - Io)[ok].reshape(-1))

@@ -25,3 +25,13 @@ def test_equals_numpy_nanmedian(dtype, k):
 def test_rejects_an_empty_first_axis():
     with pytest.raises(ValueError, match="first axis"):
         nanmedian0(np.zeros((0, 4)))
+
+
+@pytest.mark.parametrize("shape", [(7, 3), (5, 4, 3), (9, 2), (4, 1)])
+def test_all_last_and_any_last_equal_numpy(shape):
+    from ibr_pipeline.geometry.decompose_terms import all_last, any_last
+    b = np.random.default_rng(len(shape)).random(shape) < 0.6
+    assert np.array_equal(all_last(b), np.all(b, axis=-1))
+    assert np.array_equal(any_last(b), np.any(b, axis=-1))
+    with pytest.raises(ValueError, match="last axis"):
+        all_last(np.zeros((3, 0), bool))
