@@ -105,7 +105,9 @@ def segment_planes(depth: np.ndarray, image: np.ndarray, opts: PlaneOptions
     fit is linear: RANSAC over 3-pixel samples, then least squares on the inliers. A segment is
     filled only where its plane explains `inlier_share` of its known pixels, and only with
     inverse depths within [0.8, 1.25] x the inliers' range, so a plane fitted to a strip of
-    known pixels does not run off to infinity across the rest of the segment."""
+    known pixels does not run off to infinity across the rest of the segment. (Not
+    planes.ransac_planes: its inlier distance is absolute, in scene units, over 3-D points; here
+    the tolerance is relative to the depth and the fit is a linear solve per sample.)"""
     from skimage.segmentation import felzenszwalb
 
     d = np.asarray(depth, np.float64)

@@ -88,9 +88,10 @@ class ViewDepthConfig(StageConfig):
     complete: bool = param(True, "fill the pixels G leaves empty (ours, for RGB-only captures): "
                            "the view's own MVS depth, then edge-aware membrane interpolation of "
                            "the rest over Eq. 2's colour-edge cost map (geometry/depth_complete.py)")
-    complete_planes: bool = param(True, "completion: before the membrane, fill colour segments whose "
-                                  "known depths one plane explains with that plane (ours, after "
-                                  "TAPA-MVS's superpixel planes; geometry/depth_complete.py)")
+    complete_planes: bool = param(True, "completion of views with an MVS depth map: before the "
+                                  "membrane, fill colour segments whose known depths one plane "
+                                  "explains with that plane (ours, after TAPA-MVS's superpixel "
+                                  "planes; geometry/depth_complete.py)")
     planes: PlaneOptions = param(PlaneOptions(), "the segment planes of complete_planes")
     mvs_speckle_px: int = param(20, "completion: drop MVS depth regions of at most this many "
                                 "pixels (at 320x240) that no neighbour continues; 0 = off",
@@ -342,7 +343,7 @@ def _run(ctx: StageContext, view: str) -> None:
     timings["interp_ms"] = 1000 * (time.perf_counter() - t)
     # 5. completion where G is empty (ours): the view's MVS depth, then edge-aware interpolation
     t = time.perf_counter()
-    completed = {"mvs": 0, "interpolated": 0}
+    completed = {"mvs": 0, "planes": 0, "interpolated": 0}
     empty_before = float((depth2 <= 0).mean())
     if cfg.complete and (depth2 <= 0).any():
         from ..geometry.depth_complete import complete_depth
@@ -350,7 +351,10 @@ def _run(ctx: StageContext, view: str) -> None:
         if ws.exists(L.mvs_depth_file(view)):
             mvs_d = np.load(ws.path(L.mvs_depth_file(view)))
             mvs_d = mvs_d if mvs_d.any() else None
-        planes = cfg.planes.scaled(px * px) if cfg.complete_planes else None
+        # segment planes where G came from our MVS (RGB-only captures: the textureless regions
+        # PatchMatch leaves empty); over an RGB-D G's holes they added false cuts at segment
+        # borders (docs/VIEW_DEPTH.md)
+        planes = cfg.planes.scaled(px * px) if cfg.complete_planes and mvs_d is not None else None
         depth2, which = complete_depth(depth2, cam, image, mvs_d, cfg.cost_edge,
                                        px * cfg.edge_boundary_radius, strokes, planes,
                                        cfg.mvs_speckle_px * px * px)
