@@ -280,7 +280,6 @@ def main(args: argparse.Namespace) -> int:
     report = {"scene": str(folder), "renderer": "ibr" if args.workspace else "standin", "preset": args.preset,
               "device": str(device), "train_pairs": len(tr), "val_views": val_names,
               "capture_pairs": len(cap), "capture_fraction": args.capture_fraction,
-              "threads": cpu_threads(args.threads) if device.type == "cpu" else None,
               "data_seconds": time.perf_counter() - t0}
     opts = TrainOptions(steps=args.steps, batch=args.batch,
                         crop=args.crop, lr=args.lr, seed=args.seed, device=str(device),
@@ -305,12 +304,14 @@ def main(args: argparse.Namespace) -> int:
         models[key] = r.model
         trainings[key] = {"steps": r.steps, "seconds": r.seconds,
                           "s_per_step": r.seconds / max(r.steps - r.resumed_from, 1),
-                          "stopped_by_budget": r.stopped_by_budget,
+                          "stopped_by_budget": r.stopped_by_budget, "threads": r.threads,
                           "parameters": count_parameters(r.model),
                           "val_curve": list(zip(r.history["val_step"], r.history["val_psnr"]))}
         print(f"trained {key}: {r.steps} steps in {r.seconds:.0f} s", flush=True)
     report["training"] = trainings
-    with torch_threads(cpu_threads(args.threads)):
+    threads = cpu_threads(args.threads) if device.type == "cpu" else 1
+    report["eval_threads"] = threads if device.type == "cpu" else None
+    with torch_threads(threads):
         val_res, val_outs = evaluate_methods(va, models, full_res, device, scale,
                                              args.self_ensemble)
         report["heldout_views"] = val_res

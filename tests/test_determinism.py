@@ -29,8 +29,8 @@ from ibr_pipeline.stages import STAGES
 #   learning-rate schedule) at a step that depends on the machine's speed, by design
 #   (nn/train.py); 4 steps never reach it, 0 says so explicitly.
 # * train.threads = 1: the trained weights depend on torch's CPU thread count (its reductions are
-#   split per thread), and threads = 0 ("auto", nn/model.cpu_threads) picks 1 or all cores from
-#   the load average, so two runs on one machine could differ by the load alone.
+#   split per thread), and threads = 0 ("auto", nn/model.cpu_threads) takes the cores other
+#   processes leave idle, so two runs on one machine could differ by the load alone.
 CONFIG = """
 [supersample]
 time_budget_s = 0

@@ -59,6 +59,8 @@ class SuperSampler:
         self.self_ensemble = bool(self_ensemble)  # see `run_network`
         self.scale = model.config.scale
         self.last_ms = 0.0
+        from .model import cpu_threads
+        self.threads = cpu_threads()   # measured once: a frame loop must not pause to measure
         self.reset()
 
     @staticmethod
@@ -96,8 +98,8 @@ class SuperSampler:
         t = lambda a: torch.from_numpy(np.ascontiguousarray(  # noqa: E731
             a.transpose(2, 0, 1) if a.ndim == 3 else a[None]))[None].to(self.device).contiguous(
                 memory_format=torch.channels_last)
-        from .model import cpu_threads, torch_threads
-        with torch.no_grad(), torch_threads(cpu_threads()):
+        from .model import torch_threads
+        with torch.no_grad(), torch_threads(self.threads):
             out = run_network(self.model, t(color), t(depth), t(prev[0]), t(prev[1]), t(flow),
                               self.self_ensemble)
         result = out.clamp(0, 1)[0].permute(1, 2, 0).float().cpu().numpy()

@@ -20,6 +20,7 @@ minutes of training; LeakyReLU(0.1) and He initialisation (no dead units in shor
 from __future__ import annotations
 
 import contextlib
+import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -250,20 +251,56 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def _busy_jiffies() -> tuple[int, int] | None:
+    """(busy, total) clock ticks of all cores since boot, from /proc/stat (Linux); None elsewhere."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 4:
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)   # idle + iowait
+    return sum(fields[:8]) - idle, sum(fields[:8])
+
+
+def busy_cores(window_s: float = 0.25) -> float | None:
+    """Cores kept busy by other processes now: the machine's busy time over `window_s` minus this
+    process's own, in cores; None where /proc/stat is missing. A measurement of the present, where
+    the 1-minute load average still counts the pipeline's own workers of the stage before."""
+    import os
+
+    a, own_a = _busy_jiffies(), os.times()
+    if a is None:
+        return None
+    time.sleep(window_s)
+    b, own_b = _busy_jiffies(), os.times()
+    if b is None or b[1] <= a[1]:
+        return None
+    cores = os.cpu_count() or 1
+    own = (own_b.user + own_b.system) - (own_a.user + own_a.system)   # seconds
+    share = (b[0] - a[0]) / (b[1] - a[1])                             # of all cores
+    return max(0.0, share * cores - own / window_s)
+
+
 def cpu_threads(requested: int = 0) -> int:
-    """CPU threads for torch. 0 = auto: all cores, but 1 when the machine is already busy (load
-    average >= cores): OpenMP threads spin-wait and a 2-thread step was measured 7x slower than a
-    1-thread step on a loaded 2-core machine (docs/DSRNET.md)."""
+    """CPU threads for torch. 0 = auto: the cores other processes leave idle (at least 1):
+    OpenMP threads spin-wait, and a 2-thread step was measured 7x slower than a 1-thread step on
+    a 2-core machine another job kept busy (docs/DSRNET.md). Where /proc/stat is missing, the
+    1-minute load average decides: 1 thread when it is at least the number of cores."""
     import os
 
     if requested > 0:
         return requested
     cores = os.cpu_count() or 1
+    busy = busy_cores()
+    if busy is not None:
+        return max(1, min(cores, cores - int(round(busy))))
     try:
-        busy = os.getloadavg()[0] >= cores
+        loaded = os.getloadavg()[0] >= cores
     except OSError:
-        busy = False
-    return 1 if busy else cores
+        loaded = False
+    return 1 if loaded else cores
 
 
 @contextlib.contextmanager

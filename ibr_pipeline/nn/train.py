@@ -41,6 +41,7 @@ class TrainResult:
     seconds: float
     history: dict = field(default_factory=dict)
     resumed_from: int = 0
+    threads: int | None = None   # torch CPU threads the loop ran with (None on a GPU)
 
 
 def _batch(samples: Sequence[Sample], opts: TrainOptions, step: int, device,
@@ -165,9 +166,14 @@ def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Se
             optim.load_state_dict(ck["optim"])
             start, history = int(ck["step"]), ck["history"]
             log.info("supersample: resuming training at step %d from %s", start, checkpoint)
-    with torch_threads(cpu_threads(opts.threads)):
-        return _loop(model, features, optim, train_samples, val_samples, opts, checkpoint,
-                     fingerprint, history, start, device, capture_samples, time_budget_s)
+    threads = cpu_threads(opts.threads) if device.type == "cpu" else None
+    if threads is not None:
+        log.info("supersample: training on %d CPU thread%s", threads, "s" * (threads > 1))
+    with torch_threads(threads or 1):
+        result = _loop(model, features, optim, train_samples, val_samples, opts, checkpoint,
+                       fingerprint, history, start, device, capture_samples, time_budget_s)
+    result.threads = threads
+    return result
 
 
 def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, fingerprint,

@@ -80,7 +80,7 @@ def run(ctx: StageContext) -> None:
     from ..io.images import read_image
     from ..nn.data import (capture_pairs, make_sample, nearest_views, render_low_res,
                            sequence_pairs, split_views, supersampled_size)
-    from ..nn.model import count_parameters, cpu_threads, preset, resolve_device, save_model
+    from ..nn.model import count_parameters, preset, resolve_device, save_model
     from ..nn.train import evaluate, plot_losses, train
     from ..render.low_res import IBRRenderer, StandInRenderer
     from ..workspace import atomic_path
@@ -204,7 +204,7 @@ def run(ctx: StageContext) -> None:
         "seconds": {"render": render_s, "train": result.seconds,
                     "total": time.perf_counter() - t_start},
         "device": str(device), "validation": val,
-        "torch_threads": cpu_threads(tcfg.threads) if device.type == "cpu" else None,
+        "torch_threads": result.threads,
         "final_loss": float(np.mean(result.history["loss"][-20:])) if result.history["loss"] else None,
     }
     if not val_names:
