@@ -59,3 +59,34 @@ def test_user_vgg_weights_file(tmp_path):
     torch.save({"features.0.weight": torch.zeros(1)}, bad)
     with pytest.raises(RuntimeError):
         VGGFeatures(bad)
+
+
+def _reference_depthwise(x, kernel2d):
+    """The 2D per-channel convolution with replicated borders that the fast paths replace."""
+    c, pad = x.shape[1], kernel2d.shape[-1] // 2
+    k = kernel2d[None, None].expand(c, 1, *kernel2d.shape)
+    return torch.nn.functional.conv2d(torch.nn.functional.pad(x, (pad,) * 4, mode="replicate"), k,
+                                      groups=c)
+
+
+@pytest.mark.parametrize("size,sigma", [(11, 1.5), (5, 1.0)])
+def test_separable_gaussian_matches_the_2d_kernel(size, sigma):
+    from ibr_pipeline.nn.losses import gaussian_blur, gaussian_kernel
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 3, 37, 29, generator=g).contiguous(memory_format=torch.channels_last)
+    ref = _reference_depthwise(x, gaussian_kernel(size, sigma))
+    out = gaussian_blur(x, size, sigma)
+    assert out.shape == ref.shape == x.shape
+    assert float((out - ref).abs().max()) < 1e-6
+
+
+def test_filter_bank_grouped_matches_one_channel_at_a_time():
+    g = torch.Generator().manual_seed(4)
+    x = torch.rand(2, 3, 40, 36, generator=g)
+    fb = FilterBank()
+    feats = fb(x)
+    for level, y in enumerate(feats):
+        xs = torch.nn.functional.avg_pool2d(x, 2 ** level) if level else x
+        for c in range(3):   # channel c's five responses are outputs 5c .. 5c+4
+            ref = torch.cat([_reference_depthwise(xs[:, c:c + 1], fb.bank[f, 0]) for f in range(5)], 1)
+            assert float((y[:, 5 * c:5 * c + 5] - ref).abs().max()) < 1e-5
