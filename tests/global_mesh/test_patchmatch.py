@@ -334,3 +334,46 @@ def test_worker_processes_give_the_serial_maps_bit_for_bit(scene):
         assert serial[n].valid.mean() > 0.5, n
         for field in ("depth", "normal", "cost"):
             assert np.array_equal(getattr(serial[n], field), getattr(pooled[n], field)), (n, field)
+
+
+@pytest.mark.parametrize("warp", ["affine", "homography"])
+def test_matcher_cost_matches_a_vectorised_ncc(warp):
+    """The matcher accumulates the weighted window sums one sample at a time; here the same cost
+    is computed the direct way (every sample warped at once by `plane_warp`, one grid_sample,
+    weighted sums over the window axis) for random hypotheses of the analytic scene."""
+    import torch
+    import torch.nn.functional as F
+
+    from ibr_pipeline.geometry.patchmatch import FLAT_VAR, MAX_COST, _UNSEEN, _Matcher, best_k_mean
+    imgs, cams, _ = make_scene(width=64, height=48, eyes=EYES[:4])
+    gray = [im.mean(2).astype(np.float32) for im in imgs]
+    opts = PatchMatchOptions(warp=warp, sources_k_best=2)
+    scale = math.sqrt(DEPTH_RANGE[0] * DEPTH_RANGE[1])
+    m = _Matcher(gray[0], cams[0], [(g, c, None) for g, c in zip(gray[1:], cams[1:])], scale, opts,
+                 torch.device("cpu"))
+    gen = torch.Generator().manual_seed(5)
+    idx = torch.randperm(64 * 48, generator=gen)[:300]
+    depth = (DEPTH_RANGE[0] + torch.rand(300, 3, generator=gen) * 6.0) / scale
+    normal = face_camera(torch.randn(300, 3, 3, generator=gen), m.view[idx][:, None], 0.17)
+    got = m.cost(idx, depth, normal, geom=False)                      # (P, h)
+
+    pix, w, wr = m.pix[idx], m.w[:, None, idx], m.wr[:, None, idx]
+    d, nrm = depth.T.contiguous(), normal.transpose(0, 1).contiguous()
+    per = []
+    for s in m.sources:
+        centre, grid = plane_warp(s["A"], s["b"], m.kinv, pix, d, nrm, m.offsets,
+                                  exact=warp == "homography")
+        n, h, P = grid.shape[:3]
+        val = F.grid_sample(s["img"], grid.reshape(1, n, h * P, 2), mode="bilinear",
+                            padding_mode="zeros", align_corners=True).reshape(n, h, P)
+        mean, m2, cov = (val * w).sum(0), (val * val * w).sum(0), (val * wr).sum(0)
+        c = (1 - cov / (m2 - mean * mean).clamp_min(FLAT_VAR).sqrt()).clamp(0, MAX_COST)
+        z = centre[..., 2]
+        ok = (z > 1e-6) & ((centre[..., 0] / z.clamp_min(1e-6)).abs() <= s["lim"][0]) \
+            & ((centre[..., 1] / z.clamp_min(1e-6)).abs() <= s["lim"][1])
+        per.append(torch.where(ok, c, torch.full_like(c, _UNSEEN)))
+    agg = best_k_mean(torch.stack(per), 2)
+    want = torch.where(m.flat[idx] & (agg < MAX_COST), torch.ones(()), agg).T
+    assert got.shape == want.shape == (300, 3)
+    assert float((got - want).abs().max()) < 1e-4
+    assert float(want.std()) > 0.05   # hypotheses of varied quality, not all one value
