@@ -55,10 +55,9 @@ def warp_errors(ref: ViewGeom, nb: ViewGeom, tol: float = 0.05) -> tuple[float, 
 def score_candidate(views: list[ViewGeom], neighbours: int = 2, tol: float = 0.05) -> dict:
     """Multi-view consistency score of one candidate plane over the views that see it."""
     s0, s1, counts = [], [], 0
-    for v in views:
-        if v.mask.sum() < 50:
-            continue
-        others = sorted((o for o in views if o is not v and o.mask.sum() >= 50),
+    big = [v for v in views if v.mask.sum() >= 50]   # each mask counted once, not once per pair
+    for v in big:
+        others = sorted((o for o in big if o is not v),
                         key=lambda o: pose_distance(v.camera, o.camera))[:neighbours]
         for o in others:
             e0, e1, n = warp_errors(v, o, tol)
@@ -122,13 +121,14 @@ def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, t
     reflected-scene colour C (NaN where unknown). Returns {beta, corr, pixels}: least-squares
     beta = <dI, dC> / <dC, dC> and the correlation of dI and dC over all pairs and channels."""
     dI, dC = [], []
-    for v in views:
-        Cv = colours.get(v.name)
-        if Cv is None or v.mask.sum() < 50:
+    big = [v for v in views if v.name in colours and v.mask.sum() >= 50]   # counted once
+    for v in big:
+        Cv = colours[v.name]
+        if Cv is None:
             continue
         sel = v.mask & (v.D1 > 0)
         sel[sel] = all_last(np.isfinite(Cv[sel])) & ~any_last(v.image[sel] >= saturation)
-        others = sorted((o for o in views if o is not v and o.name in colours and o.mask.sum() >= 50),
+        others = sorted((o for o in big if o is not v),
                         key=lambda o: pose_distance(v.camera, o.camera))[:neighbours]
         X0, Iv, Cs = v.X0[sel], v.image[sel], Cv[sel]  # the selected pixels only, in raster order
         for o in others:
