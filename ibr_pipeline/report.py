@@ -144,8 +144,8 @@ def build(ws_root: Path, fig_dir: Path, bench_dirs: list[Path] | None = None) ->
                     + ([["median scene depth", rep.fact(frame["median_scene_depth"], src,
                                                        "median_scene_depth")]]
                        if frame.get("median_scene_depth") is not None else [])
-                    + [[f"{k} images", rep.fact(v, src, f"counts.{k}")] for k, v in
-                       frame.get("counts", {}).items()])]
+                    + [[k if k == "images" else f"{k} images", rep.fact(v, src, f"counts.{k}")]
+                       for k, v in frame.get("counts", {}).items()])]
     rep.add("Scene", blocks)
     for section in (S.summary, S.side_by_sides, S.reflections, S.plan, S.video, S.dsrnet,
                     S.stage_timings, S.speed, S.appendix):

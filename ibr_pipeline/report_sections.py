@@ -81,9 +81,13 @@ def summary(rep) -> None:
         else:
             cells.append("-")
         rows.append(cells)
+    scene = read_json(rep.root / L.SCENE)
+    enc = scene.get("image_encoding", "linear") if isinstance(scene, dict) else "linear"
+    other = "linear" if enc == "srgb" else "srgb"
     blocks = [("p", f"Held-out cameras ({m.get('source', '?')}), {len(m.get('per_view', []))} "
-                    "views; PSNR in dB on linear images, SSIM, FLIP (lower is better), and PSNR "
-                    "inside reflectors."),
+                    f"views; PSNR in dB on the images in the capture's encoding ({enc}; "
+                    f"`summary.psnr_{other}` in eval/metrics.json: {other}), SSIM, FLIP (lower "
+                    "is better), and PSNR inside reflectors."),
               ("table", ["method", "PSNR", "SSIM", "FLIP", "PSNR in reflectors", "ms/frame"], rows)]
     extra = [(k, label) for k, label in (("reflector_gain_db", "two layers over single layer "
                                                                "inside reflectors (dB)"),
