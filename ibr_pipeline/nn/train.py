@@ -166,13 +166,13 @@ def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Se
             optim.load_state_dict(ck["optim"])
             start, history = int(ck["step"]), ck["history"]
             log.info("supersample: resuming training at step %d from %s", start, checkpoint)
-    threads = cpu_threads(opts.threads) if device.type == "cpu" else None
-    if threads is not None:
+    threads = cpu_threads(opts.threads)   # also on a GPU: the crops are cut on the CPU
+    if device.type == "cpu":
         log.info("supersample: training on %d CPU thread%s", threads, "s" * (threads > 1))
-    with torch_threads(threads or 1):
+    with torch_threads(threads):
         result = _loop(model, features, optim, train_samples, val_samples, opts, checkpoint,
                        fingerprint, history, start, device, capture_samples, time_budget_s)
-    result.threads = threads
+    result.threads = threads if device.type == "cpu" else None
     return result
 
 
