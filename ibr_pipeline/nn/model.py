@@ -251,17 +251,20 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _busy_jiffies() -> tuple[int, int] | None:
-    """(busy, total) clock ticks of all cores since boot, from /proc/stat (Linux); None elsewhere."""
+def _busy_jiffies() -> tuple[int, int, int] | None:
+    """(busy, total) clock ticks of all cores since boot and the number of cores they cover, from
+    /proc/stat (Linux); None elsewhere."""
     try:
         with open("/proc/stat") as f:
-            fields = [int(x) for x in f.readline().split()[1:]]
-    except (OSError, ValueError):
+            lines = f.read().splitlines()
+        fields = [int(x) for x in lines[0].split()[1:]]
+    except (OSError, ValueError, IndexError):
         return None
     if len(fields) < 4:
         return None
+    ncpu = sum(1 for ln in lines[1:] if ln.startswith("cpu") and ln[3:4].isdigit()) or 1
     idle = fields[3] + (fields[4] if len(fields) > 4 else 0)   # idle + iowait
-    return sum(fields[:8]) - idle, sum(fields[:8])
+    return sum(fields[:8]) - idle, sum(fields[:8]), ncpu
 
 
 def busy_cores(window_s: float = 0.25) -> float | None:
@@ -277,10 +280,9 @@ def busy_cores(window_s: float = 0.25) -> float | None:
     b, own_b = _busy_jiffies(), os.times()
     if b is None or b[1] <= a[1]:
         return None
-    cores = os.cpu_count() or 1
     own = (own_b.user + own_b.system) - (own_a.user + own_a.system)   # seconds
-    share = (b[0] - a[0]) / (b[1] - a[1])                             # of all cores
-    return max(0.0, share * cores - own / window_s)
+    share = (b[0] - a[0]) / (b[1] - a[1])          # of all the cores /proc/stat counts
+    return max(0.0, share * b[2] - own / window_s)
 
 
 def cpu_threads(requested: int = 0) -> int:
