@@ -309,7 +309,7 @@ def main(args: argparse.Namespace) -> int:
                           "val_curve": list(zip(r.history["val_step"], r.history["val_psnr"]))}
         print(f"trained {key}: {r.steps} steps in {r.seconds:.0f} s", flush=True)
     report["training"] = trainings
-    threads = cpu_threads(args.threads) if device.type == "cpu" else 1
+    threads = cpu_threads(args.threads)
     report["eval_threads"] = threads if device.type == "cpu" else None
     with torch_threads(threads):
         val_res, val_outs = evaluate_methods(va, models, full_res, device, scale,

@@ -244,6 +244,7 @@ class _Matcher:
         self.view = self.ray / self.ray.norm(dim=1, keepdim=True)
         offs = window_offsets(opts.window, opts.window_step)
         self.offsets = torch.as_tensor(offs, **f32)
+        self.offset_list = [(float(x), float(y)) for x, y in offs]   # the cost loop's scalars
         # reference windows (edge replicated) and their bilateral weights, centred and normalised
         # once: NCC's reference half does not depend on the hypothesis
         g = torch.as_tensor(ref_gray - 0.5, **f32)
@@ -302,7 +303,6 @@ class _Matcher:
         pix = self.pix[idx]
         w, wr = self.w[:, idx], self.wr[:, idx]                          # (n, P)
         exact = self.opts.warp == "homography"
-        offsets = self.offsets.tolist()
         per_src = []
         for s in self.sources:
             terms = plane_warp_terms(s["A"], s["b"], self.kinv, pix, depth, normal,
@@ -316,7 +316,7 @@ class _Matcher:
             # vectorised form were ~8x slower than accumulating (h, P) planes in place
             mean = torch.zeros((h, P), device=depth.device)
             m2, cov = torch.zeros_like(mean), torch.zeros_like(mean)
-            for i, (ox, oy) in enumerate(offsets):
+            for i, (ox, oy) in enumerate(self.offset_list):
                 grid = offset_samples(terms, ox, oy)
                 val = F.grid_sample(s["img"], grid[None], mode="bilinear", padding_mode="zeros",
                                     align_corners=True)[0, 0]               # (h, P)

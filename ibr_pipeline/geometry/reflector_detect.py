@@ -121,11 +121,9 @@ def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, t
     reflected-scene colour C (NaN where unknown). Returns {beta, corr, pixels}: least-squares
     beta = <dI, dC> / <dC, dC> and the correlation of dI and dC over all pairs and channels."""
     dI, dC = [], []
-    big = [v for v in views if v.name in colours and v.mask.sum() >= 50]   # counted once
+    big = [v for v in views if colours.get(v.name) is not None and v.mask.sum() >= 50]  # once
     for v in big:
         Cv = colours[v.name]
-        if Cv is None:
-            continue
         sel = v.mask & (v.D1 > 0)
         sel[sel] = all_last(np.isfinite(Cv[sel])) & ~any_last(v.image[sel] >= saturation)
         others = sorted((o for o in big if o is not v),

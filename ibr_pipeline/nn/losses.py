@@ -36,16 +36,10 @@ def _check_pair(a, b, what: str) -> None:
 
 
 def gaussian_1d(size: int, sigma: float, dtype=torch.float32) -> torch.Tensor:
-    """Normalised (size,) Gaussian; its outer product with itself is `gaussian_kernel`."""
+    """Normalised (size,) Gaussian; its outer product with itself is the 2D kernel."""
     x = torch.arange(size, dtype=dtype) - (size - 1) / 2
     g = torch.exp(-x ** 2 / (2 * sigma ** 2))
     return g / g.sum()
-
-
-def gaussian_kernel(size: int, sigma: float, dtype=torch.float32) -> torch.Tensor:
-    """Normalised (size, size) Gaussian."""
-    g = gaussian_1d(size, sigma, dtype)
-    return g[:, None] * g[None, :]
 
 
 def gaussian_blur(x, size: int, sigma: float):
