@@ -76,6 +76,25 @@ def pose_distance(a: Camera, b: Camera) -> float:
     return float(np.linalg.norm(a.center - b.center) + math.acos(np.clip(cosang, -1, 1)))
 
 
+def nearest_by_pose(cameras: list, neighbours: int) -> list[list[int]]:
+    """For each of the cameras, the indices of the `neighbours` others with the smallest
+    pose_distance, nearest first (ties in list order, as a stable sort). One distance matrix:
+    the detection stage asks this of every view of every candidate plane."""
+    n = len(cameras)
+    if n == 0:
+        return []
+    C = np.array([c.center for c in cameras], np.float64)
+    R = np.array([c.R for c in cameras], np.float64)
+    R9 = R.reshape(n, 9)
+    cosang = (R9 @ R9.T - 1) / 2  # trace(R_a R_b^T)
+    D = np.linalg.norm(C[:, None] - C[None], axis=-1) + np.arccos(np.clip(cosang, -1, 1))
+    out = []
+    for a in range(n):
+        order = np.argsort(D[a], kind="stable")
+        out.append([int(b) for b in order if b != a][:neighbours])
+    return out
+
+
 def _sample_np(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
     import cv2
 

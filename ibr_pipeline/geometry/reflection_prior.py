@@ -14,6 +14,7 @@ import numpy as np
 from .decompose_terms import (_nearest, all_last, depth_consistent, nanmedian0, project,
                               sample_bilinear)
 from .planes import mirror_matrix
+from .prior_nb import seen_colours
 
 
 SAMPLE = 2000  # reflected points that rank the views (deterministic stride)
@@ -37,14 +38,21 @@ def sample_points(points: np.ndarray, n: int = SAMPLE) -> np.ndarray:
 def views_in_frustum(points: np.ndarray, cameras) -> list[int]:
     """Indices of the cameras in front of which at least one of the (N, 3) points projects
     inside the image: the only views that can see them (the colour prior's candidates)."""
-    out = []
-    for i, cam in enumerate(cameras):
-        pos, z = project(cam, points)
-        inside = (z > 0) & (pos[:, 0] > -0.5) & (pos[:, 1] > -0.5) \
-            & (pos[:, 0] < cam.width - 0.5) & (pos[:, 1] < cam.height - 0.5)
-        if inside.any():
-            out.append(i)
-    return out
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    if not len(cameras) or not len(P):
+        return []
+    R = np.array([c.R for c in cameras], np.float64)
+    t = np.array([c.t for c in cameras], np.float64)
+    K = np.array([c.K for c in cameras], np.float64)
+    cam = P @ R.transpose(0, 2, 1) + t[:, None]  # all cameras at once: (V, N, 3)
+    z = cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (cam @ K.transpose(0, 2, 1))[..., :2] / z[..., None]
+    w = np.array([c.width for c in cameras], np.float64)[:, None]
+    h = np.array([c.height for c in cameras], np.float64)[:, None]
+    inside = (z > 0) & (uv[..., 0] > -0.5) & (uv[..., 1] > -0.5) \
+        & (uv[..., 0] < w - 0.5) & (uv[..., 1] < h - 0.5)
+    return [int(i) for i in np.flatnonzero(inside.any(1))]
 
 
 def _sees(depth, exclude, pos, z, tol):
@@ -52,6 +60,16 @@ def _sees(depth, exclude, pos, z, tol):
     not see the point directly there): the same as testing against the depth with the
     reflector pixels zeroed, without building that map."""
     return depth_consistent(depth, pos, z, tol) & ~_nearest(exclude, pos, True)[0]
+
+
+def seen_colours_np(camera, points, depth, exclude, image, tol):
+    """The reference of `prior_nb.seen_colours` (same arguments and returns): (N, C) bilinear
+    colours of the (N, 3) points where the view sees them directly, NaN elsewhere, and the count."""
+    pos, z = project(camera, points)
+    vis = _sees(depth, exclude, pos, z, tol)
+    # float32 images are interpolated in float64 all the same (numpy promotes the corners)
+    s = sample_bilinear(np.asarray(image), np.nan_to_num(pos, nan=-1.0))
+    return np.where(vis[:, None], s, np.nan), int(vis.sum())
 
 
 def reflected_scene_colour(X1: np.ndarray, plane, views, tol: float = 0.03,
@@ -73,22 +91,16 @@ def reflected_scene_colour(X1: np.ndarray, plane, views, tol: float = 0.03,
     views = list(views)
     if max_views is not None and len(views) > max_views:
         S = sample_points(Xr)
-        seen = []
-        for cam, _img, depth, exclude in views:
-            pos, z = project(cam, S)
-            seen.append(_sees(depth, exclude, pos, z, tol).mean())
+        seen = [seen_colours(cam, S, depth, exclude, img, tol)[1] / len(S)
+                for cam, img, depth, exclude in views]
         best = sorted(range(len(views)), key=lambda i: -seen[i])[:max_views]
         keep = [i for i in best if seen[i] > 0] or best
         views = [views[i] for i in sorted(keep)]
     cols = []
     for cam, img, depth, exclude in views:
-        pos, z = project(cam, Xr)
-        vis = _sees(depth, exclude, pos, z, tol)
-        if not vis.any():
-            continue
-        # float32 images are interpolated in float64 all the same (numpy promotes the corners)
-        s = sample_bilinear(np.asarray(img), np.nan_to_num(pos, nan=-1.0))
-        cols.append(np.where(vis[:, None], s, np.nan))
+        col, n = seen_colours(cam, Xr, depth, exclude, img, tol)
+        if n:
+            cols.append(col)
     if cols:
         st = np.stack(cols)
         n = np.isfinite(st[..., 0]).sum(0)

@@ -217,9 +217,9 @@ class Loader:
         views = []
         for i in views_in_frustum(sample_points(Xr), [self.camera(o) for o in self.names]):
             _, _, wc, wi, wd = self.raw(self.names[i])
-            ex = np.zeros(wd.shape, bool)
-            for r in reflectors:
-                ex |= self.mask(self.names[i], r)
+            masks = [self.mask(self.names[i], r) for r in reflectors]  # read, not written
+            ex = (np.zeros(wd.shape, bool) if not masks else masks[0] if len(masks) == 1
+                  else np.logical_or.reduce(masks))
             views.append((wc, wi, wd, ex))
         C = reflected_scene_colour(X1, refl["plane"], views, tol=self.cfg.prior_tol,
                                    max_views=self.cfg.prior_views)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from .decompose_terms import (ViewGeom, _nearest, all_last, any_last, depth_consistent,
-                             pose_distance, project, remap_points)
+                             nearest_by_pose, project, remap_points)
 
 
 def warp_errors(ref: ViewGeom, nb: ViewGeom, tol: float = 0.05) -> tuple[float, float, int]:
@@ -56,10 +56,9 @@ def score_candidate(views: list[ViewGeom], neighbours: int = 2, tol: float = 0.0
     """Multi-view consistency score of one candidate plane over the views that see it."""
     s0, s1, counts = [], [], 0
     big = [v for v in views if v.mask.sum() >= 50]   # each mask counted once, not once per pair
-    for v in big:
-        others = sorted((o for o in big if o is not v),
-                        key=lambda o: pose_distance(v.camera, o.camera))[:neighbours]
-        for o in others:
+    near = nearest_by_pose([v.camera for v in big], neighbours)
+    for v, nb in zip(big, near):
+        for o in (big[j] for j in nb):
             e0, e1, n = warp_errors(v, o, tol)
             if n:
                 s0.append(e0)
@@ -122,12 +121,11 @@ def reflectance_cue(views: list[ViewGeom], colours: dict, neighbours: int = 2, t
     beta = <dI, dC> / <dC, dC> and the correlation of dI and dC over all pairs and channels."""
     dI, dC = [], []
     big = [v for v in views if colours.get(v.name) is not None and v.mask.sum() >= 50]  # once
-    for v in big:
+    for v, nb in zip(big, nearest_by_pose([v.camera for v in big], neighbours)):
         Cv = colours[v.name]
         sel = v.mask & (v.D1 > 0)
         sel[sel] = all_last(np.isfinite(Cv[sel])) & ~any_last(v.image[sel] >= saturation)
-        others = sorted((o for o in big if o is not v),
-                        key=lambda o: pose_distance(v.camera, o.camera))[:neighbours]
+        others = [big[j] for j in nb]
         X0, Iv, Cs = v.X0[sel], v.image[sel], Cv[sel]  # the selected pixels only, in raster order
         for o in others:
             p0, z0 = project(o.camera, X0)
