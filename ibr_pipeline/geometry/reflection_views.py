@@ -65,6 +65,9 @@ class ReflectorsConfig(ReflectorViewsConfig):
                                min=0.0, max=1.0)
     detect_min_pairs: int = param(4, "view pairs a detected reflector must be scored on",
                                   min=1, max=1000)
+    detect_min_fit: float = param(0.005, "the Eq. 3 fit (detect_beta) counts only over at least "
+                                  "this fraction of one view's pixels (the synthetic table top: "
+                                  "7 %; a false wall of llff_horns: 0.05 %)", min=0.0, max=1.0)
     mirror_ratio: float = param(0.5, "mirror-warp / surface-warp error below which a detected "
                                 "reflector is a mirror (beta = 1, I0 = 0)", min=0.0, max=10.0)
     detect_explained: bool = param(True, "a surface-warp error above detect_threshold makes a "
@@ -377,9 +380,11 @@ def score_plane(loader: Loader, cand: dict) -> dict:
             score["transmission_ratio"] = t["mirror_ratio"]
     finally:
         loader.forget(cand["name"])
+    px = max((v.camera.width * v.camera.height for v in views), default=0)  # working size
+    min_fit = int(np.ceil(cfg.detect_min_fit * px))
     kept, reason = decision(score, cfg.detect_threshold, cfg.detect_min_pairs,
                             cfg.detect_beta or None, cfg.detect_corr,
-                            cfg.mirror_ratio if cfg.detect_explained else None)
+                            cfg.mirror_ratio if cfg.detect_explained else None, min_fit)
     if len(views) < 2:
         reason = f"seen by {len(views)} view(s) with >= {cfg.min_mask_pixels} mask pixels, 2 needed"
     cand.update(score=score, views=len(views), kept=kept, reason=reason)

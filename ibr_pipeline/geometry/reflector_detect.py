@@ -72,7 +72,8 @@ def score_candidate(views: list[ViewGeom], neighbours: int = 2, tol: float = 0.0
 
 
 def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | None,
-             min_corr: float, mirror_ratio: float | None = None) -> tuple[bool, str]:
+             min_corr: float, mirror_ratio: float | None = None,
+             min_fit_pixels: int = 0) -> tuple[bool, str]:
     """(is a reflector, why) from `score_candidate` (+ `reflectance_cue` as fit_beta, fit_corr).
 
     A plane scored on fewer than `min_pairs` view pairs is not one (one or two pairs are too weak:
@@ -83,18 +84,24 @@ def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | No
     (mirror/surface error < mirror_ratio), or the warp of the geometry behind the plane does
     (key transmission_ratio: glass). An error that none of these explains is view-inconsistency
     of another kind -- on real captures, wrong geometry at a depth edge or a light fixture -- and
-    is reported as such. `mirror_ratio` None: the error alone decides (b)."""
+    is reported as such. `mirror_ratio` None: the error alone decides (b). The Eq. 3 fit counts
+    only over at least `min_fit_pixels` pixels (key fit_pixels): a correlation over a few dozen
+    pixels is noise."""
     pairs = score.get("pairs", 0) or 0
     if pairs < min_pairs:
         return False, f"scored on {pairs} view pair(s), {min_pairs} needed"
     e, r = score.get("surface_error"), score.get("mirror_ratio")
     b, c = score.get("fit_beta"), score.get("fit_corr")
-    fitted = min_beta is not None and b is not None and c is not None and b >= min_beta and c >= min_corr
+    npx = score.get("fit_pixels") or 0
+    few = min_beta is not None and b is not None and c is not None and npx < min_fit_pixels
+    fitted = (min_beta is not None and b is not None and c is not None and not few
+              and b >= min_beta and c >= min_corr)
     err = "no surface-warp error" if e is None else f"surface-warp error {e:.4f}"
     if fitted:
         return True, (f"Eq. 3 fit beta {b:.3f} >= {min_beta:g} with correlation {c:.2f} >= "
                       f"{min_corr:g} ({pairs} view pairs; {err})")
     fit = ("" if min_beta is None else "; no Eq. 3 fit" if b is None or c is None
+           else f"; Eq. 3 fit over {npx} pixels, {min_fit_pixels} needed" if few
            else f"; Eq. 3 fit beta {b:.3f} / correlation {c:.2f} below {min_beta:g} / {min_corr:g}")
     if e is None or e <= threshold:
         return False, (f"{err} <= {threshold:g}" if e is not None else err) + fit

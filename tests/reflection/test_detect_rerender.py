@@ -138,6 +138,10 @@ def test_decision_needs_a_reflection_to_explain_the_surface_warp_error():
     assert decision(dict(base, mirror_ratio=2.0), 0.02, 4, 0.05, 0.4, None)[0]  # the error alone
     ok, why = decision(dict(base, mirror_ratio=2.0, fit_beta=0.2, fit_corr=0.6), 0.02, 4, 0.05, 0.4, 0.5)
     assert ok and "Eq. 3 fit" in why
+    fit = dict(base, surface_error=0.01, fit_beta=0.8, fit_corr=0.42, fit_pixels=87)
+    assert decision(fit, 0.02, 4, 0.05, 0.4, 0.5, 80)[0]
+    ok, why = decision(fit, 0.02, 4, 0.05, 0.4, 0.5, 945)  # 0.5 % of 502x376: too few pixels
+    assert not ok and "Eq. 3 fit over 87 pixels, 945 needed" in why
     ok, why = decision(dict(base, pairs=3, mirror_ratio=0.1), 0.02, 4, 0.05, 0.4, 0.5)
     assert not ok and "4 needed" in why
     ok, why = decision(dict(base, surface_error=0.01, mirror_ratio=0.1), 0.02, 4, 0.05, 0.4, 0.5)
