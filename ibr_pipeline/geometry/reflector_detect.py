@@ -93,9 +93,9 @@ def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | No
     e, r = score.get("surface_error"), score.get("mirror_ratio")
     b, c = score.get("fit_beta"), score.get("fit_corr")
     npx = score.get("fit_pixels") or 0
-    few = min_beta is not None and b is not None and c is not None and npx < min_fit_pixels
-    fitted = (min_beta is not None and b is not None and c is not None and not few
-              and b >= min_beta and c >= min_corr)
+    has_fit = min_beta is not None and b is not None and c is not None
+    few = has_fit and npx < min_fit_pixels
+    fitted = has_fit and not few and b >= min_beta and c >= min_corr
     err = "no surface-warp error" if e is None else f"surface-warp error {e:.4f}"
     if fitted:
         return True, (f"Eq. 3 fit beta {b:.3f} >= {min_beta:g} with correlation {c:.2f} >= "
