@@ -57,25 +57,28 @@ def plane_basis(plane) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def ransac_planes(points: np.ndarray, *, distance: float = 0.008, min_points: int = 200,
                   max_planes: int = 12, iterations: int = 1000, cluster_eps: float = 0.06,
                   min_cluster_area: float = 0.05, seed: int = 0) -> list[dict]:
-    """Planar segments of a point set (samples of G): repeated RANSAC (open3d `segment_plane`),
-    each plane refined by least squares on its inliers and split into connected pieces
-    (open3d DBSCAN). Returns [{plane (4,), polygon (K, 3) convex hull of the piece, area, count}].
+    """Planar segments of a point set (samples of G): repeated RANSAC (`ransac_nb.best_plane`,
+    `iterations` 3-point hypotheses per plane, drawn from `seed`), each plane refined by least
+    squares on its inliers and split into connected pieces (open3d DBSCAN), each piece's plane
+    found again in a band a quarter as thick. Returns [{plane (4,), polygon (K, 3) convex hull
+    of the piece, area, count}].
     """
     import open3d as o3d
     from scipy.spatial import ConvexHull, QhullError
 
+    from .ransac_nb import best_plane
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {pts.shape}")
-    o3d.utility.random.seed(int(seed))
+    rng = np.random.default_rng(int(seed))
+    refit_rng = np.random.default_rng([int(seed), 1])  # its own stream: the planes' draws stay put
+    refit_iterations = max(1, iterations // 4)
     rest = pts
     out = []
     for _ in range(max_planes):
         if len(rest) < min_points:
             break
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
-        model, idx = pc.segment_plane(distance, 3, iterations)
-        idx = np.asarray(idx)
+        _, idx = best_plane(rest, distance, iterations, rng)
         if len(idx) < min_points:
             break
         inl = rest[idx]
@@ -83,10 +86,12 @@ def ransac_planes(points: np.ndarray, *, distance: float = 0.008, min_points: in
         keep = np.abs(inl @ plane[:3] + plane[3]) < distance
         inl = inl[keep]
         plane = fit_plane(inl)
+        slab = rest[np.abs(rest @ plane[:3] + plane[3]) < 2 * distance]
         rest = np.delete(rest, idx, axis=0)
         labels = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(inl))
                             .cluster_dbscan(cluster_eps, 8))
         origin, u, v = plane_basis(plane)
+        slab_uv = np.c_[(slab - origin) @ u, (slab - origin) @ v]
         for lab in range(labels.max() + 1 if len(labels) else 0):
             piece = inl[labels == lab]
             if len(piece) < min_points // 4:
@@ -99,12 +104,19 @@ def ransac_planes(points: np.ndarray, *, distance: float = 0.008, min_points: in
             if hull.volume < min_cluster_area:  # 2D hull "volume" is its area
                 continue
             poly = origin + np.outer(uv[hull.vertices, 0], u) + np.outer(uv[hull.vertices, 1], v)
-            pl = fit_plane(piece)
-            for _ in range(3):  # robust refit on the piece: a thick band can tilt the plane
-                near = piece[np.abs(piece @ pl[:3] + pl[3]) < 0.5 * distance]
-                if len(near) < 3:
+            # the piece's own plane: RANSAC at a quarter of the inlier distance over the points
+            # within 2 x distance of the plane above the piece's hull, then least squares on that
+            # band. Two surfaces closer than `distance` (a TV screen 5 mm in front of its body)
+            # share one band, and a plane fitted to the band tilts between them.
+            near = slab[(hull.equations[:, :2] @ slab_uv.T + hull.equations[:, 2:] <= 1e-9).all(0)]
+            pl, ii = best_plane(near, 0.25 * distance, refit_iterations, refit_rng)
+            if len(ii) < 3:
+                near, pl = piece, fit_plane(piece)
+            for _ in range(2):
+                band = near[np.abs(near @ pl[:3] + pl[3]) < 0.25 * distance]
+                if len(band) < 3:
                     break
-                pl = fit_plane(near)
+                pl = fit_plane(band)
             out.append({"plane": pl, "polygon": poly, "area": float(hull.volume),
                         "count": int(len(piece))})
     return out

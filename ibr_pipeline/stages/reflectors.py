@@ -75,4 +75,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="reflectors", help="reflector planes: user-given + detected (Xu et al. §4.3)",
-              config=ReflectorsConfig, version="2", run=run, inputs=inputs, outputs=[L.PLANES])
+              config=ReflectorsConfig, version="3", run=run, inputs=inputs, outputs=[L.PLANES])
