@@ -66,8 +66,10 @@ class ReflectorsConfig(ReflectorViewsConfig):
     detect_min_pairs: int = param(4, "view pairs a detected reflector must be scored on",
                                   min=1, max=1000)
     detect_min_fit: float = param(0.005, "the Eq. 3 fit (detect_beta) counts only over at least "
-                                  "this fraction of one view's pixels (the synthetic table top: "
-                                  "7 %; a false wall of llff_horns: 0.05 %)", min=0.0, max=1.0)
+                                  "this fraction of one view's pixels, on a candidate covering "
+                                  "as much of one view (the synthetic table top: 7 %; a false "
+                                  "wall of llff_horns: 0.05 %; a sliver of llff_room21: 0.12 % "
+                                  "per view)", min=0.0, max=1.0)
     mirror_ratio: float = param(0.5, "mirror-warp / surface-warp error below which a detected "
                                 "reflector is a mirror (beta = 1, I0 = 0)", min=0.0, max=10.0)
     detect_explained: bool = param(True, "a surface-warp error above detect_threshold makes a "
@@ -366,6 +368,7 @@ def score_plane(loader: Loader, cand: dict) -> dict:
         views = [loader.geom(v, cand, masked=True) for v in loader.names  # mask first (cheap)
                  if loader.mask(v, cand).sum() >= cfg.min_mask_pixels]
         score = score_candidate(views) if len(views) >= 2 else {"surface_error": None, "pairs": 0}
+        score["mask_pixels"] = max((int(g.mask.sum()) for g in views), default=0)
         # the Eq. 3 fit (weak reflectors) only where the pair count lets it decide
         if len(views) >= 2 and cfg.detect_beta > 0 and score.get("pairs", 0) >= cfg.detect_min_pairs:
             cols = {g.name: loader.prior(g.name, dict(cand, beta=1.0), [cand], geom=g)
