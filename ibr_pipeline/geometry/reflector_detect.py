@@ -94,17 +94,18 @@ def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | No
     e, r = score.get("surface_error"), score.get("mirror_ratio")
     b, c = score.get("fit_beta"), score.get("fit_corr")
     npx = score.get("fit_pixels") or 0
-    mpx = score.get("mask_pixels", npx)
+    mpx = score.get("mask_pixels")
     has_fit = min_beta is not None and b is not None and c is not None
-    few = has_fit and min(npx, mpx) < min_fit_pixels
+    few = has_fit and min(npx, npx if mpx is None else mpx) < min_fit_pixels
     fitted = has_fit and not few and b >= min_beta and c >= min_corr
     err = "no surface-warp error" if e is None else f"surface-warp error {e:.4f}"
     if fitted:
         return True, (f"Eq. 3 fit beta {b:.3f} >= {min_beta:g} with correlation {c:.2f} >= "
                       f"{min_corr:g} ({pairs} view pairs; {err})")
     fit = ("" if min_beta is None else "; no Eq. 3 fit" if b is None or c is None
-           else (f"; Eq. 3 fit over {npx} pixels of a candidate of at most {mpx} per view, "
-                 f"{min_fit_pixels} needed") if few
+           else (f"; Eq. 3 fit over {npx} pixels"
+                 + ("" if mpx is None else f" of a candidate of at most {mpx} per view")
+                 + f", {min_fit_pixels} needed") if few
            else f"; Eq. 3 fit beta {b:.3f} / correlation {c:.2f} below {min_beta:g} / {min_corr:g}")
     if e is None or e <= threshold:
         return False, (f"{err} <= {threshold:g}" if e is not None else err) + fit
