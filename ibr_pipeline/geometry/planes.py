@@ -107,7 +107,8 @@ def ransac_planes(points: np.ndarray, *, distance: float = 0.008, min_points: in
             # the piece's own plane: RANSAC at a quarter of the inlier distance over the points
             # within 2 x distance of the plane above the piece's hull, then least squares on that
             # band. Two surfaces closer than `distance` (a TV screen 5 mm in front of its body)
-            # share one band, and a plane fitted to the band tilts between them.
+            # share one band, and a plane fitted to the band tilts between them. The hull's own
+            # half-planes keep its boundary points (polygon_contains' path test may not).
             near = slab[(hull.equations[:, :2] @ slab_uv.T + hull.equations[:, 2:] <= 1e-9).all(0)]
             pl, ii = best_plane(near, 0.25 * distance, refit_iterations, refit_rng)
             if len(ii) < 3:

@@ -96,7 +96,7 @@ def decision(score: dict, threshold: float, min_pairs: int, min_beta: float | No
     npx = score.get("fit_pixels") or 0
     mpx = score.get("mask_pixels")
     has_fit = min_beta is not None and b is not None and c is not None
-    few = has_fit and min(npx, npx if mpx is None else mpx) < min_fit_pixels
+    few = has_fit and (npx < min_fit_pixels or (mpx is not None and mpx < min_fit_pixels))
     fitted = has_fit and not few and b >= min_beta and c >= min_corr
     err = "no surface-warp error" if e is None else f"surface-warp error {e:.4f}"
     if fitted:
