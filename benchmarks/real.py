@@ -128,8 +128,10 @@ def main(args: argparse.Namespace) -> int:
                         "median_scene_depth": poses.get("median_scene_depth"),
                         "method": poses["alignment"].get("method")},
         "sfm": poses.get("sfm"), "path_jumps": poses.get("path_jumps"),
-        "heldout_metrics": {m: {k: s.get(f"{m}_{k}" if m != "ours" else k) for k in ("psnr", "ssim", "flip")}
+        "heldout_metrics": {m: {k: s.get(f"{m}_{k}" if m != "ours" else k)
+                                for k in ("psnr", "ssim", "flip", "psnr_mask", "ssim_mask", "flip_mask")}
                             for m in ("ours", "single", "naive", "nearest")},
+        "reflector_pixels": [v.get("reflector_pixels", 0) for v in metrics["per_view"]],
         "holes": s.get("holes"), "coverage": _coverage(ws),
         "stage_seconds": _stage_seconds(ws), "wall_s": wall,
         "published": PUBLISHED.get(name, []), "machine": machine(),
@@ -144,7 +146,9 @@ def main(args: argparse.Namespace) -> int:
     print(f"{name}: {result['heldout']} held-out of {result['images']} at "
           f"{'x'.join(map(str, result['size'] or []))}, scene frame {poses['units']}")
     for m in ("ours", "single", "naive", "nearest"):
-        print(f"  {m:8s} PSNR {fmt(hm[m]['psnr'])} dB  SSIM {fmt(hm[m]['ssim'])}  FLIP {fmt(hm[m]['flip'])}")
+        print(f"  {m:8s} PSNR {fmt(hm[m]['psnr'])} dB  SSIM {fmt(hm[m]['ssim'])}  FLIP {fmt(hm[m]['flip'])}"
+              + (f"  | inside reflectors {fmt(hm[m]['psnr_mask'])} dB" if hm[m]["psnr_mask"] is not None
+                 else ""))
     for p in result["published"]:
         print(f"  {p['method']:8s} PSNR {p['psnr']:.2f} dB  SSIM {p['ssim']:.3f}  at {p['resolution']} "
               f"({p['source']})")

@@ -176,6 +176,32 @@ def scene_reflectors(ws) -> tuple:
         raise InputError(f"{p}: malformed (rerun `ibr poses`)") from None
 
 
+def outline_depth_key(scene, view: str, dense: str) -> str:
+    """The depth an outline-given reflector's plane is fitted to in `view`: the MVS map
+    global_mesh fused (dense = mvs), else the view's depth frame."""
+    return mvs_depth_file(view) if dense == "mvs" else scene.view(view).depth
+
+
+def global_dense(ws) -> str:
+    """How global_mesh made G ("mvs" or "rgbd", global/report.json)."""
+    try:
+        return str(json.loads(ws.path(GLOBAL_REPORT).read_text())["dense"])
+    except (OSError, KeyError, TypeError, ValueError):
+        from .errors import InputError
+        raise InputError(f"{ws.path(GLOBAL_REPORT)}: missing or malformed (run `ibr run "
+                         f"{ws.root} --from global_mesh`)") from None
+
+
+def outline_keys(ws, scene) -> list[str]:
+    """The depth maps geometry/user_reflectors reads (none when no reflector is given by an
+    outline)."""
+    views = [r.outline[0] for r in scene_reflectors(ws) if r.plane is None]
+    if not views:
+        return []
+    dense = global_dense(ws)
+    return [GLOBAL_REPORT] + [k for v in views if (k := outline_depth_key(scene, v, dense))]
+
+
 def poses_report(ws) -> dict:
     """global/poses.json: the scene frame (units, scale, transform), depth ranges, checks."""
     from .errors import InputError

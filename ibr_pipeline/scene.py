@@ -222,37 +222,49 @@ class Reflector:
     known. polygon: optional (N, 3) world-space outline of the reflector's extent. masks: optional
     per-view mask images (view name -> workspace key), white = reflector. material: optional
     "mirror" (beta 1 when no beta is given), "glass" or "glossy"; detection sets it for the planes
-    it finds, a user-given one overrides it (user planes win).
+    it finds, a user-given one overrides it (user planes win). outline: (view name, ((u, v), ...))
+    instead of a plane: the reflector's corners in pixels of one photograph, for captures whose
+    frame a user cannot give coordinates in (SfM units); plane is None until `global_mesh` fits it
+    to the surface around the outline (`planes.plane_from_outline`).
     """
 
     name: str
-    plane: tuple[float, float, float, float]
+    plane: tuple[float, float, float, float] | None
     beta: float | None = None
     polygon: tuple[tuple[float, float, float], ...] | None = None
     masks: dict[str, str] = field(default_factory=dict)
     material: str | None = None
+    outline: tuple | None = None
 
     @property
     def normal(self) -> np.ndarray:
         return np.asarray(self.plane[:3])
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "plane": list(self.plane), "beta": self.beta,
-                "polygon": None if self.polygon is None else [list(p) for p in self.polygon],
-                "masks": dict(self.masks), "material": self.material}
+        d = {"name": self.name, "plane": None if self.plane is None else list(self.plane),
+             "beta": self.beta,
+             "polygon": None if self.polygon is None else [list(p) for p in self.polygon],
+             "masks": dict(self.masks), "material": self.material}
+        if self.outline is not None:
+            d["outline"] = {"view": self.outline[0], "points": [list(p) for p in self.outline[1]]}
+        return d
 
     @staticmethod
     def from_dict(d: dict, where: str) -> "Reflector":
-        if not isinstance(d, dict) or "plane" not in d:
-            raise InputError(f"{where}: each reflector needs a 'plane' [a, b, c, d]")
+        if not isinstance(d, dict) or (d.get("plane") is None and d.get("outline") is None):
+            raise InputError(f"{where}: each reflector needs a 'plane' [a, b, c, d] or an "
+                             "'outline' {\"view\": image name, \"points\": [[u, v], ...]}")
         name = str(d.get("name", where))
-        plane = _numbers(d["plane"], f"{where}: 'plane'")
-        if plane.shape != (4,) or not np.all(np.isfinite(plane)):
-            raise InputError(f"{where}: 'plane' must be 4 finite numbers, got {d['plane']!r}")
-        n = np.linalg.norm(plane[:3])
-        if n < 1e-9:
-            raise InputError(f"{where}: 'plane' normal is zero")
-        plane = plane / n
+        outline = None if d.get("outline") is None else _outline(d["outline"], where)
+        plane = None
+        if d.get("plane") is not None:
+            plane = _numbers(d["plane"], f"{where}: 'plane'")
+            if plane.shape != (4,) or not np.all(np.isfinite(plane)):
+                raise InputError(f"{where}: 'plane' must be 4 finite numbers, got {d['plane']!r}")
+            n = np.linalg.norm(plane[:3])
+            if n < 1e-9:
+                raise InputError(f"{where}: 'plane' normal is zero")
+            plane = tuple(float(c) for c in plane / n)
         beta = d.get("beta")
         if beta is not None and not (isinstance(beta, (int, float)) and 0 < beta <= 1):
             raise InputError(f"{where}: 'beta' must be a number in (0, 1], got {beta!r}")
@@ -271,8 +283,19 @@ class Reflector:
                              f"{material!r}")
         if material == "mirror" and beta is None:
             beta = 1.0
-        return Reflector(name, tuple(float(c) for c in plane), None if beta is None else float(beta),
-                         poly, {str(k): str(v) for k, v in masks.items()}, material)
+        return Reflector(name, plane, None if beta is None else float(beta),
+                         poly, {str(k): str(v) for k, v in masks.items()}, material, outline)
+
+
+def _outline(o, where: str) -> tuple:
+    """(view name, ((u, v), ...)) of a reflectors.json 'outline': >= 3 finite pixel positions."""
+    if not isinstance(o, dict) or not isinstance(o.get("view"), str):
+        raise InputError(f"{where}: 'outline' must be {{\"view\": image name, \"points\": "
+                         "[[u, v], ...]}")
+    pts = _numbers(o.get("points"), f"{where}: 'outline' points")
+    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 3 or not np.all(np.isfinite(pts)):
+        raise InputError(f"{where}: 'outline' points must be >= 3 finite [u, v] pixel positions")
+    return o["view"], tuple((float(u), float(v)) for u, v in pts)
 
 
 @dataclass(frozen=True)

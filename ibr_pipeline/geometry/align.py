@@ -52,8 +52,11 @@ def transform_camera(cam: Camera, s: float, R: np.ndarray, t: np.ndarray) -> Cam
 
 def transform_reflector(refl, s: float, R: np.ndarray, t: np.ndarray):
     """The reflector after mapping the world by x' = s R x + t: n' = R n, d' = s d - n' . t
-    (from n . x + d = 0 with x = R^T (x' - t) / s); the polygon moves with the world."""
+    (from n . x + d = 0 with x = R^T (x' - t) / s); the polygon moves with the world. A
+    reflector given by its outline in a photograph has no plane yet: pixels need no mapping."""
     import dataclasses
+    if refl.plane is None:
+        return refl
     n = np.asarray(R, np.float64) @ np.asarray(refl.plane[:3], np.float64)
     d = s * float(refl.plane[3]) - float(n @ np.asarray(t, np.float64))
     poly = None if refl.polygon is None else tuple(

@@ -213,6 +213,95 @@ def reflector_mask(camera: Camera, plane, polygon: np.ndarray | None, depth: np.
     return ok
 
 
+def plane_from_outline(camera: Camera, depth: np.ndarray, outline: np.ndarray,
+                       ring: float = 0.05, gap: float = 0.01, min_points: int = 50,
+                       proud: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
+    """Plane (4,) and world polygon (K, 3) of a reflector outlined in one photograph.
+
+    `outline` (K, 2): its corners in the camera's pixels; `depth` (h, w): that view's z-depth at
+    any size (0 = none). A mirror's or a screen's own depth is the mirror world or noise, the wall
+    it hangs on is not: the plane is fitted to the depth in a band outside the outline, from
+    `gap` to `gap + ring` of the image's larger side (the frame's few pixels skipped): the
+    band's largest plane (RANSAC at 1 % of its median depth), then least squares trimmed to 2.5
+    robust sigmas (ten rounds), with the camera on its positive side (§4.3.1: the reflector's
+    plane; Xu et al. take it from the user). A reflector may stand proud of that
+    surface (a TV's screen): when most of the depth inside the outline lies in a slab up to
+    `proud` × depth in front of the plane, with a median offset above 2.5 sigmas of the fit, the
+    plane moves by that median. The polygon is the outline's rays on the plane. ValueError when
+    fewer than `min_points` depths surround the outline."""
+    import cv2
+    depth = np.asarray(depth, np.float64)
+    uv = np.asarray(outline, np.float64)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be (h, w), got {depth.shape}")
+    if uv.ndim != 2 or uv.shape[1] != 2 or len(uv) < 3:
+        raise ValueError(f"outline must be (K>=3, 2), got {uv.shape}")
+    h, w = depth.shape
+    cam = camera.resized(w, h)
+    sx, sy = w / camera.width, h / camera.height
+    px = np.c_[(uv[:, 0] + 0.5) * sx - 0.5, (uv[:, 1] + 0.5) * sy - 0.5]  # Camera.resized's pixels
+    inner = np.zeros((h, w), np.uint8)
+    cv2.fillPoly(inner, [np.round(px).astype(np.int32)], 1)
+
+    def grown(r: float) -> np.ndarray:
+        k = 2 * max(1, int(round(r * max(h, w)))) + 1
+        return cv2.dilate(inner, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+
+    band = grown(gap + ring) & ~grown(gap) & (depth > 0) & np.isfinite(depth)
+    vs, us = np.nonzero(band)
+    if len(us) < min_points:
+        raise ValueError(f"{len(us)} depth samples around the outline, {min_points} needed")
+    from .raycast import pixel_directions
+    P = cam.center + pixel_directions(cam, np.c_[us, vs].astype(np.float64)) * depth[vs, us][:, None]
+    from .ransac_nb import best_plane
+    # the band may cross other surfaces (a cabinet below a TV): the wall is the largest plane
+    # (RANSAC at 1 % of the band's depth), then least squares on it
+    _, idx = best_plane(P, 0.01 * float(np.median(depth[vs, us])), 1000, np.random.default_rng(0))
+    keep = np.zeros(len(P), bool)
+    keep[idx] = True
+    if keep.sum() < min_points:
+        keep[:] = True
+    for _ in range(10):
+        plane = fit_plane(P[keep])
+        r = P @ plane[:3] + plane[3]
+        sigma = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        keep = np.abs(r) <= max(2.5 * sigma, 1e-12)
+    plane = fit_plane(P[keep])
+    if camera.center @ plane[:3] + plane[3] < 0:
+        plane = -plane
+    vi, ui = np.nonzero((cv2.erode(inner, np.ones((3, 3), np.uint8)) > 0) & (depth > 0)
+                        & np.isfinite(depth))
+    if len(ui) >= min_points:
+        zi = depth[vi, ui]
+        off = (cam.center + pixel_directions(cam, np.c_[ui, vi].astype(np.float64)) * zi[:, None]) \
+            @ plane[:3] + plane[3]                                 # > 0: in front, camera side
+        slab = (off > -2.5 * sigma) & (off < proud * zi)
+        if slab.mean() > 0.5 and np.median(off[slab]) > 2.5 * sigma:
+            plane = np.r_[plane[:3], plane[3] - np.median(off[slab])]
+    X, z = ray_plane_hits(cam, plane, px)
+    if not np.all(np.isfinite(z) & (z > 0)):
+        raise ValueError("an outline corner's ray does not meet the fitted plane in front of the camera")
+    return plane, X
+
+
+def reflector_support(camera: Camera, plane, polygon: np.ndarray | None,
+                      occluder_depth: np.ndarray, rel_tol: float = 0.02) -> np.ndarray:
+    """A reflector's pixels in a camera that has no depth of its own (a held-out photograph),
+    given the z-depth of the scene's other geometry there (G ray-cast, 0 = none): the polygon's
+    projection less the pixels where that geometry lies in front of the plane by more than
+    `rel_tol`. G may hold nothing, or the mirror world, behind a reflector; neither hides it.
+    Without a polygon: `reflector_mask` on the occluder depth (the plane's extent is where G is)."""
+    occ = np.asarray(occluder_depth, np.float64)
+    if occ.shape != (camera.height, camera.width):
+        raise ValueError(f"occluder_depth must be ({camera.height}, {camera.width}), got {occ.shape}")
+    if polygon is None:
+        return reflector_mask(camera, plane, None, occ, rel_tol)
+    _, z = ray_plane_hits(camera, plane)
+    on_plane = np.where(np.isfinite(z) & (z > 0), z, 0.0)
+    front = (occ > 0) & (occ < on_plane * (1 - rel_tol))
+    return reflector_mask(camera, plane, polygon, np.where(front, occ, on_plane), rel_tol)
+
+
 def mirror_points(camera: Camera, plane, mask: np.ndarray, scene,
                   min_gap: float = 0.03, bounds=None,
                   transmit: bool = False) -> tuple[np.ndarray, np.ndarray]:

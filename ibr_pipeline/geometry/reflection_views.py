@@ -19,6 +19,7 @@ from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
 from .decompose import DecomposeOptions
+from .user_reflectors import user_reflectors
 
 
 @dataclass(frozen=True)
@@ -310,9 +311,12 @@ def registered_views(ws, scene) -> list[str]:
     return [n for n in scene.names if n in cams]
 
 
-def user_reflectors_key(ws) -> list[str]:
-    """The user's reflectors in the scene frame (written by `poses` from input/reflectors.json)."""
-    return [L.SCENE_REFLECTORS] if ws.exists(L.USER_REFLECTORS) else []
+def user_reflectors_key(ws, scene) -> list[str]:
+    """The user's reflectors in the scene frame (written by `poses` from input/reflectors.json),
+    and the depth maps their outlines are placed with."""
+    if not ws.exists(L.USER_REFLECTORS):
+        return []
+    return [L.SCENE_REFLECTORS] + L.outline_keys(ws, scene)
 
 
 def detect_enabled(ws, cfg: "ReflectorsConfig") -> bool:
@@ -413,7 +417,7 @@ def compute_planes(loader: Loader, score_all=None) -> dict:
     ws, cfg = loader.ws, loader.cfg
     user = []
     if cfg.use_user_reflectors and ws.exists(L.USER_REFLECTORS):
-        for r in L.scene_reflectors(ws):
+        for r in user_reflectors(ws, loader.scene_manifest):
             d = r.to_dict()
             d["source"] = "user"
             user.append(d)

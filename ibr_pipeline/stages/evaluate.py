@@ -12,8 +12,10 @@ ground truth. Methods compared on the same cameras:
            layers) — the floor; its ms/frame is measured here (numpy + open3d ray casting, CPU)
 PSNR/SSIM/FLIP (`metrics`) over the whole image and inside reflectors (held-out views: GT material
 with kr > 0 from gt/test/geom; leave-one-out views: GT beta > 0, or the reflection stage's beta when
-there is no GT). Temporal stability on the fly-through: mean absolute frame-to-frame change of
-ours vs the GT video, and the error of that change (flicker).
+there is no GT; held-out photographs of a real capture: the reflectors of reflection/planes.json
+projected into them, less what the global mesh puts in front). Temporal stability on the
+fly-through: mean absolute frame-to-frame change of ours vs the GT video, and the error of that
+change (flicker).
 Outputs: eval/metrics.json (`summary` = the headline numbers), eval/metrics.png (bar chart),
 eval/side_by_side/NNNN.png (ours | GT | single-layer | error ×4; display sRGB), eval/fly.mp4 (the
 tour set when rendered, else the fly-through).
@@ -79,10 +81,12 @@ def inputs(ctx: StageContext) -> list[str]:
         keys += [L.render_file(s, "cameras.json")] if s != "test" else []
         keys += [L.render_file(s, f"{i:04d}.png") for i in range(len(cams))]
         src = _source(ctx, s)
+        if s == "test" and src == "heldout_captures" and ctx.ws.path(L.PLANES).is_file():
+            keys += [L.PLANES, L.GLOBAL_MESH]  # the projected reflector masks
         if s in ("test", "fly"):
             keys += [k for n in cams if (k := _gt_image_key(ctx, s, n, src))
                      and ctx.ws.path(k).is_file()]
-    return keys
+    return list(dict.fromkeys(keys))
 
 
 def outputs(ctx: StageContext) -> list[str]:
@@ -140,8 +144,38 @@ def _energy_chart(path: Path, histories: dict) -> None:
     plt.close(fig)
 
 
-def _reflector_mask(ctx: StageContext, name: str, source: str, shape):
-    """GT reflector mask of a test camera (None when unknown)."""
+def _projected_reflector_masks(ctx: StageContext, cameras: dict) -> dict:
+    """{held-out photograph: reflector mask} for the reflectors the reflection stage used
+    (reflection/planes.json), projected into each camera less what G puts in front of them;
+    {} when there are none. A photograph has no depth and no decomposition of its own, so this
+    is how "inside the reflector" is measured on a real capture."""
+    import numpy as np
+
+    from ..geometry import planes as P
+    from ..geometry import raycast
+    from ..io.mesh import read_ply
+    from .reflection import read_planes
+    if not ctx.ws.path(L.PLANES).is_file() or not ctx.ws.path(L.GLOBAL_MESH).is_file():
+        return {}
+    refl = read_planes(ctx.ws)["reflectors"]
+    if not refl:
+        return {}
+    mesh = read_ply(ctx.ws.path(L.GLOBAL_MESH))
+    scene = raycast.build_scene(mesh.vertices, mesh.faces)
+    out = {}
+    for name, cam in cameras.items():
+        occ = raycast.render_depth(scene, cam)
+        mask = np.zeros((cam.height, cam.width), bool)
+        for r in refl:
+            poly = None if r.get("polygon") is None else np.asarray(r["polygon"], np.float64)
+            mask |= P.reflector_support(cam, r["plane"], poly, occ)
+        out[name] = mask
+    return out
+
+
+def _reflector_mask(ctx: StageContext, name: str, source: str, shape, projected: dict):
+    """Reflector mask of a test camera (None when unknown): GT where the input has it, else for
+    held-out photographs the projection of the reconstructed reflectors (`projected`)."""
     import numpy as np
 
     from ..io.images import read_image
@@ -163,6 +197,8 @@ def _reflector_mask(ctx: StageContext, name: str, source: str, shape):
         if p.is_file():
             b = np.load(p)
             return b > 0 if b.shape == shape else None
+        m = projected.get(name)
+        return m if m is not None and m.shape == shape and m.any() else None
     return None
 
 
@@ -236,6 +272,7 @@ def run(ctx: StageContext) -> None:
     naive_ms = []
     rows = {"ours": [], "single": [], "oracle": [], "naive": [], "nearest": []}
     holes = _holes(ctx, "test")
+    projected = _projected_reflector_masks(ctx, test) if source == "heldout_captures" else {}
     per_view = []
     for i, (name, cam) in enumerate(test.items()):
         key = _gt_image_key(ctx, "test", name, source)
@@ -244,7 +281,7 @@ def run(ctx: StageContext) -> None:
         if ref.shape != ours.shape:
             raise InputError(f"{ws.path(key)}: ground truth is {ref.shape[1]}x{ref.shape[0]}, "
                              f"the render {ours.shape[1]}x{ours.shape[0]}")
-        mask = _reflector_mask(ctx, name, source, ref.shape[:2])
+        mask = _reflector_mask(ctx, name, source, ref.shape[:2], projected)
         entry = {"name": name, "reflector_pixels": int(mask.sum()) if mask is not None else 0,
                  "holes": holes.get(name)}
         imgs = {"ours": ours}
@@ -373,4 +410,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="6", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="7", run=run, inputs=inputs, outputs=outputs)

@@ -23,6 +23,7 @@ from ..errors import ConfigError, InputError
 from ..executors import LocalExecutor
 from ..geometry.fusion import FusionOptions
 from ..geometry.patchmatch import PatchMatchOptions
+from ..geometry.user_reflectors import user_reflectors
 from ..runner import Stage, StageContext
 
 log = logging.getLogger("ibr_pipeline.global_mesh")
@@ -232,7 +233,17 @@ def run(ctx: StageContext) -> None:
                          f"({len(depth_views)} depth frames for {len(cams)} views; "
                          "global_mesh.dense is rgbd)")
     report: dict = {"dense": dense, "units": frame.get("units"), "timings": {}}
-    reflectors = L.scene_reflectors(ws)
+    ranges = {n: tuple(r) for n, r in frame.get("depth_ranges", {}).items()}
+    depths = _mvs_depths(ctx, cams, ranges, report) if dense == "mvs" else None
+    if depths is not None:  # view_depth completes G's holes with them; outlines are fitted to them
+        for n, (d, _) in depths.items():
+            with ws.atomic_write(L.mvs_depth_file(n)) as f:
+                np.save(f, d.astype(np.float32))
+        for n in cams:
+            if n not in depths:  # a view MVS skipped: no depth
+                with ws.atomic_write(L.mvs_depth_file(n)) as f:
+                    np.save(f, np.zeros((8, 8), np.float32))
+    reflectors = user_reflectors(ws, scene, dense)
     view_masks: dict = {}
     for r in reflectors:
         for vn, key in r.masks.items():
@@ -240,9 +251,11 @@ def run(ctx: StageContext) -> None:
     if not reflectors:
         log.warning("global_mesh: no reflectors.json: what depth/MVS sees in mirrors (the mirror "
                     "world) is fused into the global mesh as if it were real geometry")
+    for r in reflectors:
+        if r.outline is not None:
+            log.info("global_mesh: reflector %s placed from its outline in %s: plane %s",
+                     r.name, r.outline[0], ", ".join(f"{c:.4f}" for c in r.plane))
     stats = {"reflector_pixels": 0}
-    ranges = {n: tuple(r) for n, r in frame.get("depth_ranges", {}).items()}
-    depths = _mvs_depths(ctx, cams, ranges, report) if dense == "mvs" else None
     voxel = cfg.fusion.voxel_size or _auto_voxel(ctx, cams, depth_views, depths,
                                                  frame.get("units") == "metres")
     report["voxel_size"] = {"value": voxel, "auto": not cfg.fusion.voxel_size}
@@ -275,14 +288,6 @@ def run(ctx: StageContext) -> None:
                           "mesh_vertices": len(mesh.vertices), "mesh_faces": len(mesh.faces)},
                   mirror_world="masked by reflectors.json" if reflectors else
                   "NOT masked: no reflectors.json, mirror-world geometry may be in the mesh")
-    if depths is not None:  # view_depth completes G's holes with them
-        for n, (d, _) in depths.items():
-            with ws.atomic_write(L.mvs_depth_file(n)) as f:
-                np.save(f, d.astype(np.float32))
-        for n in cams:
-            if n not in depths:  # a view MVS skipped: no depth
-                with ws.atomic_write(L.mvs_depth_file(n)) as f:
-                    np.save(f, np.zeros((8, 8), np.float32))
     # tsdf_fuse returns the mesh in io.mesh.canonical_order (open3d's marching cubes emits it in a
     # thread-dependent order): identical inputs write identical bytes, so a forced rerun leaves
     # every later stage up to date (tests/test_determinism.py)

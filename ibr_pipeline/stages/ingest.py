@@ -192,14 +192,23 @@ def _run(ctx: StageContext, staging: Path) -> None:
             if view_name not in names:
                 raise InputError(f"{root / 'reflectors.json'}: reflector {r.name!r} has a "
                                  f"mask for unknown view {view_name!r}")
-            where = f"{root / 'reflectors.json'}: reflector {r.name!r} mask of {view_name!r}"
-            confined(root, rel, where)  # a shared reflectors.json must not read outside
+            what = f"{root / 'reflectors.json'}: reflector {r.name!r} mask of {view_name!r}"
+            confined(root, rel, what)  # a shared reflectors.json must not read outside
             key = f"input/{rel}"
             mw, mh = image_size(ws.path(key))
             iw, ih = image_size(where(next(v.image for v in views if v.name == view_name)))
             if (mw, mh) != (iw, ih):
                 raise InputError(f"{ws.path(key)}: mask is {mw}x{mh}, its image is {iw}x{ih}")
             masks[view_name] = key
+        if r.outline is not None:
+            view_name, pts = r.outline
+            what = f"{root / 'reflectors.json'}: reflector {r.name!r} outline"
+            if view_name not in names:
+                raise InputError(f"{what}: unknown view {view_name!r}")
+            iw, ih = image_size(where(next(v.image for v in views if v.name == view_name)))
+            if not all(-0.5 <= u <= iw - 0.5 and -0.5 <= v <= ih - 0.5 for u, v in pts):
+                raise InputError(f"{what}: a point lies outside the {iw}x{ih} image {view_name!r} "
+                                 "(pixel positions, 0-based, x right and y down)")
         reflectors.append(dataclasses.replace(r, masks=masks))
     scene = Scene(tuple(views), tuple(reflectors), cap.format, _encoding(cfg, cap, root), sparse)
     for src in sorted(p for p in staging.rglob("*") if p.is_file()):  # every check passed

@@ -25,7 +25,7 @@ log = logging.getLogger("ibr_pipeline.reflectors")
 
 
 def inputs(ctx: StageContext) -> list[str]:
-    keys = [L.REGISTERED_CAMERAS, L.GLOBAL_MESH] + user_reflectors_key(ctx.ws)
+    keys = [L.REGISTERED_CAMERAS, L.GLOBAL_MESH] + user_reflectors_key(ctx.ws, ctx.scene)
     if detect_enabled(ctx.ws, ctx.config):
         for v in registered_views(ctx):
             keys += [ctx.scene.view(v).image, ctx.ws.view_file(v, L.DEPTH)]

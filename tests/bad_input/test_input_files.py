@@ -12,6 +12,7 @@ import pytest
 from conftest import refused
 from PIL import Image
 
+from ibr_pipeline.cli import main
 from ibr_pipeline.scene import cameras_to_json
 
 
@@ -175,11 +176,27 @@ def test_reflector_mask_paths(capsys, ws, input_dir, tmp_path, mask, needle):
     refused(capsys, _run(ws), input_dir, ws, "reflectors.json" if needle != "none.png" else "", needle)
 
 
+def test_a_reflector_mask_of_a_known_view_is_taken(ws, input_dir):
+    """The same check that refuses the paths above passes a good mask (and an outline) through."""
+    Image.fromarray(np.full((30, 40), 255, np.uint8)).save(input_dir / "m.png")
+    (input_dir / "reflectors.json").write_text(json.dumps([
+        {"name": "m", "plane": [0, 1, 0, -3], "masks": {"1.png": "m.png"}},
+        {"name": "tv", "outline": {"view": "1.png", "points": [[2, 2], [30, 2], [30, 20]]}}]))
+    assert main(["run", str(ws), "--until", "ingest", "--no-progress"]) == 0
+    refl = json.loads((ws / "scene.json").read_text())["reflectors"]
+    assert refl[0]["masks"] == {"1.png": "input/m.png"}
+    assert refl[1]["plane"] is None and refl[1]["outline"]["view"] == "1.png"
+
+
 @pytest.mark.parametrize("body,needle", [
     ('[{"plane": ["a", 1, 0, 0]}]', "'plane'"), ('[{"plane": [0, 0, 0, 1]}]', "normal is zero"),
     ('[{"plane": [0, 1, 0, 1], "beta": 3}]', "'beta'"), ('[{"name": "x"}]', "'plane'"),
     ('[{"plane": [0, 1, 0, 1], "polygon": [["a"]]}]', "'polygon'"),
     ('[{"plane": [0, 1, 0, 1], "masks": {"77.png": "m.png"}}]', "unknown view"), ("{", "reflectors"),
+    ('[{"outline": {"view": "77.png", "points": [[1, 1], [9, 1], [9, 9]]}}]', "unknown view"),
+    ('[{"outline": {"view": "1.png", "points": [[1, 1], [50, 1], [9, 9]]}}]', "outside the 40x30"),
+    ('[{"outline": {"view": "1.png", "points": [[1, 1]]}}]', "'outline' points"),
+    ('[{"outline": ["1.png"]}]', "'outline' must be"),
 ])
 def test_bad_reflectors_json(capsys, ws, input_dir, body, needle):
     (input_dir / "reflectors.json").write_text(body)

@@ -102,3 +102,31 @@ def test_sfm_recovers_poses_on_synthetic_scene(tmp_path):
     err = pose_errors(est, truth)
     assert err["rotation_deg"]["median"] <= 0.5 and err["center_m"]["median"] <= 0.05
     assert len(est) >= 0.3 * len(truth)
+
+
+def test_a_reflector_given_by_its_outline_in_one_photo_is_placed(sample_scene, tmp_path):
+    """reflectors.json with the TV screen's corners in one image instead of its plane (the only
+    reflector of the sample some view sees whole): global_mesh fits the plane to the depth around
+    the outline, moves it onto the screen that stands proud of the wall, and masks with it."""
+    from ibr_pipeline.geometry.user_reflectors import user_reflectors
+    from ibr_pipeline.scene import Scene
+    from ibr_pipeline.workspace import Workspace
+    src = tmp_path / "input"
+    shutil.copytree(sample_scene, src, ignore=shutil.ignore_patterns("gt"))
+    true = {r.name: r for r in read_input(sample_scene).reflectors}
+    tv = true["tv_screen"]
+    view = next(v for v in read_input(sample_scene).views if v.name == "0007.png")
+    uv, z = view.camera.project(np.asarray(tv.polygon))
+    assert np.all(z > 0) and np.all(uv > 10) and np.all(uv < [310, 230])  # seen whole
+    (src / "reflectors.json").write_text(json.dumps({"reflectors": [
+        {"name": "tv", "outline": {"view": "0007.png", "points": uv.tolist()}}]}))
+    ws = tmp_path / "ws"
+    assert main(["run", str(ws), "--input", str(src), "--until", "global_mesh",
+                 "--set", "global_mesh.progress=false"]) == 0
+    placed = user_reflectors(Workspace(ws), Scene.from_json((ws / "scene.json").read_text()))[0]
+    n = np.asarray(placed.plane[:3])
+    assert np.degrees(np.arccos(min(1.0, abs(n @ tv.normal)))) < 1.0
+    corners = np.asarray(tv.polygon)
+    assert np.abs(corners @ n + placed.plane[3]).max() < 0.01     # on the screen, not the wall
+    assert np.abs(np.asarray(placed.polygon) - corners).max() < 0.03
+    assert json.loads((ws / "global" / "report.json").read_text())["counts"]["reflector_pixels"] > 0
