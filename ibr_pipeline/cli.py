@@ -202,6 +202,11 @@ def _cmd_status(args) -> int:
         frame = L.poses_report(ws)
         if frame.get("units"):
             print(scene_frame_line(frame))
+        from .report import reflectors_line
+        read = lambda k: json.loads(ws.path(k).read_text()) if ws.path(k).is_file() else None  # noqa: E731
+        line = reflectors_line(read(L.PLANES), read(L.FOUND_REFLECTORS))
+        if line:
+            print(line)
     return 0
 
 

@@ -39,6 +39,7 @@ SFM_DEPTH = "sfm/depth"
 # --- global_mesh ---------------------------------------------------------------------------------
 GLOBAL_MESH = "global/mesh.ply"                   # G (Xu §4.1)
 GLOBAL_REPORT = "global/report.json"
+FOUND_REFLECTORS = "global/found_reflectors.json"  # reflectors global_mesh found behind planes
 MVS_DEPTH_DIR = "global/mvs"                      # each view's filtered MVS depth (RGB-only captures)
 
 # --- per view: view_file(view, NAME) -------------------------------------------------------------

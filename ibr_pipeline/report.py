@@ -108,6 +108,26 @@ def scene_frame_line(frame: dict) -> str:
     return f"Scene frame: {what}. Poses from {frame.get('pose_source', '?')}{held}."
 
 
+def reflectors_line(planes: dict | None, found: dict | None) -> str | None:
+    """One sentence on the scene's reflectors (`ibr status`): reflection/planes.json's when the
+    `reflectors` stage ran, else what global_mesh found in the depth; None when neither exists."""
+    if planes is not None:
+        refl = planes.get("reflectors", [])
+        by = {}
+        for r in refl:
+            by.setdefault(r.get("source", "?"), []).append(r["name"])
+        dropped = sum(not c.get("kept") for c in planes.get("candidates", []))
+        names = {"user": "given", "depth": "found in the depth", "detected": "detected on G"}
+        parts = [f"{len(v)} {names.get(k, k)} ({', '.join(v)})" for k, v in by.items()]
+        return (f"Reflectors: {'; '.join(parts) if parts else 'none'}; {dropped} candidate(s) "
+                "dropped (reflection/planes.json says why).")
+    if found is not None:
+        kept = [r["name"] for r in found.get("reflectors", [])]
+        return (f"Reflectors found in the depth by global_mesh: {', '.join(kept) or 'none'} of "
+                f"{len(found.get('candidates', []))} candidate(s) (global/found_reflectors.json).")
+    return None
+
+
 def input_line(scene: dict) -> str:
     """One sentence on how the input was read (scene.json; report and `ibr status`)."""
     views = scene.get("views", [])

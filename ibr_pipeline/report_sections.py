@@ -177,9 +177,10 @@ def reflections(rep, per_reflector: int = 2) -> None:
             v = (c.get("score") or {}).get(key)
             return (rep.fact(v, planes_src, f"candidates.{i}.score.{key}")
                     if isinstance(v, (int, float)) else "-")
-        blocks.append(("p", f"Reflector detection (stage reflectors): {len(cands)} candidate "
-                            "planes of the global mesh, each with its evidence and the reason it "
-                            "was kept or dropped (docs/REFLECTION.md, Detection)."))
+        blocks.append(("p", f"Reflector detection: {len(cands)} candidates — regions seen behind "
+                            "a plane of the depth maps (behind_*, stage global_mesh) and planes of "
+                            "the global mesh (stage reflectors) — each with its evidence and the "
+                            "reason it was kept or dropped (docs/REFLECTION.md, Detection)."))
         blocks.append(("table", ["candidate", "verdict", "views", "surface-warp error",
                                  "mirror / surface", "Eq. 3 beta", "Eq. 3 corr", "reason"],
                        [[c.get("name", "?"), "kept" if c.get("kept") else "dropped",

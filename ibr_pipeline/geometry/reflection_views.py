@@ -313,10 +313,29 @@ def registered_views(ws, scene) -> list[str]:
 
 def user_reflectors_key(ws, scene) -> list[str]:
     """The user's reflectors in the scene frame (written by `poses` from input/reflectors.json),
-    and the depth maps their outlines are placed with."""
+    the depth maps their outlines are placed with, and the reflectors `global_mesh` found."""
+    found = [L.FOUND_REFLECTORS] if ws.exists(L.FOUND_REFLECTORS) else []
     if not ws.exists(L.USER_REFLECTORS):
-        return []
-    return [L.SCENE_REFLECTORS] + L.outline_keys(ws, scene)
+        return found
+    return [L.SCENE_REFLECTORS] + L.outline_keys(ws, scene) + found
+
+
+def found_reflectors(ws) -> tuple[list[dict], list[dict]]:
+    """(reflectors, candidates) that `global_mesh` found behind planes of the MVS depth
+    (global/found_reflectors.json; none when it is absent)."""
+    if not ws.exists(L.FOUND_REFLECTORS):
+        return [], []
+    import json
+    data = json.loads(ws.path(L.FOUND_REFLECTORS).read_text())
+    out = []
+    for d in data.get("reflectors", []):
+        d = dict(d)
+        d["source"] = "depth"
+        out.append(d)
+    cands = [{"name": c["name"], "plane": c["plane"], "score": c.get("score", {}),
+              "views": len(c.get("views", [])), "kept": c["kept"],
+              "reason": "global_mesh: " + c["reason"]} for c in data.get("candidates", [])]
+    return out, cands
 
 
 def detect_enabled(ws, cfg: "ReflectorsConfig") -> bool:
@@ -421,6 +440,8 @@ def compute_planes(loader: Loader, score_all=None) -> dict:
             d = r.to_dict()
             d["source"] = "user"
             user.append(d)
+    found, found_cands = found_reflectors(ws)
+    user += found  # masked out of G like the user's: decomposed as given
     scored: list = []
     if detect_enabled(ws, cfg):
         cands = plane_candidates(loader)
@@ -435,7 +456,7 @@ def compute_planes(loader: Loader, score_all=None) -> dict:
             d["kept"], d["reason"] = False, f"{d['reason']}; same plane as {same}"
     keys = ("name", "plane", "score", "views", "kept", "reason")
     return {"format": "ibr_pipeline.reflectors/1", "reflectors": merged,
-            "candidates": [{k: c[k] for k in keys} for c in scored]}
+            "candidates": found_cands + [{k: c[k] for k in keys} for c in scored]}
 
 
 # --- one view, one reflector -------------------------------------------------------------------

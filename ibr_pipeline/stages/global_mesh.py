@@ -5,7 +5,9 @@ Dense geometry: RGB-D TSDF fusion (geometry/fusion.py), or multi-view stereo of 
 fused the same way: PatchMatch with slanted planes and geometric consistency (geometry/patchmatch.py,
 COLMAP / ACMM style; the default) or the fronto-parallel plane sweep (geometry/mvs.py) filtered by
 geometric consistency. Each view's MVS depth is kept for view_depth's completion. Reflectors (reflectors.json) are replaced
-by their plane in every depth map before fusion, so the mirror world never enters G. The module
+by their plane in every depth map before fusion, so the mirror world never enters G; without
+them, reflectors are looked for in the depth (regions behind a plane that the mirrored G
+explains, geometry/behind_detect.py) and G is fused again without the ones found. The module
 only loads, calls and saves; docs/GLOBAL_MESH.md explains the choices.
 """
 from __future__ import annotations
@@ -37,7 +39,7 @@ def dense_mode(ctx) -> str:
 
 
 def outputs(ctx: StageContext) -> list[str]:
-    out = [L.GLOBAL_MESH, L.GLOBAL_REPORT]
+    out = [L.GLOBAL_MESH, L.GLOBAL_REPORT, L.FOUND_REFLECTORS]
     if ctx.ws.path(L.REGISTERED_CAMERAS).is_file() and dense_mode(ctx) == "mvs":
         out += [L.mvs_depth_file(n) for n in L.registered_cameras(ctx.ws)]
     return out
@@ -49,6 +51,11 @@ class GlobalMeshConfig(StageConfig):
                        "auto = rgbd when every view has depth", choices=("auto", "rgbd", "mvs"))
     fusion: FusionOptions = param(FusionOptions(), "TSDF fusion of the depth frames")
     reflector_fill: bool = param(True, "replace reflector pixels by the reflector plane (else drop them)")
+    find_reflectors: str = param("auto", "find reflectors in the MVS depth: regions seen behind a "
+                                 "plane of a view, enclosed by it, in many views, that the "
+                                 "mirrored mesh explains (geometry/behind_detect.py); they are "
+                                 "masked out of G like reflectors.json's. 'auto' = only when no "
+                                 "reflectors.json is given", choices=("auto", "on", "off"))
     mvs: str = param("patchmatch", "MVS method: patchmatch (slanted planes, propagation, "
                      "geometric consistency; geometry/patchmatch.py) or sweep (fronto-parallel "
                      "plane sweep, geometry/mvs.py)", choices=("patchmatch", "sweep"))
@@ -248,14 +255,10 @@ def run(ctx: StageContext) -> None:
     for r in reflectors:
         for vn, key in r.masks.items():
             view_masks.setdefault(vn, {})[r.name] = read_image(ws.path(key))[..., 0] > 0.5
-    if not reflectors:
-        log.warning("global_mesh: no reflectors.json: what depth/MVS sees in mirrors (the mirror "
-                    "world) is fused into the global mesh as if it were real geometry")
     for r in reflectors:
         if r.outline is not None:
             log.info("global_mesh: reflector %s placed from its outline in %s: plane %s",
                      r.name, r.outline[0], ", ".join(f"{c:.4f}" for c in r.plane))
-    stats = {"reflector_pixels": 0}
     voxel = cfg.fusion.voxel_size or _auto_voxel(ctx, cams, depth_views, depths,
                                                  frame.get("units") == "metres")
     report["voxel_size"] = {"value": voxel, "auto": not cfg.fusion.voxel_size}
@@ -263,31 +266,58 @@ def run(ctx: StageContext) -> None:
     far = cfg.fusion.depth_max or (max(hi for _, hi in ranges.values()) if ranges else 1e6)
     report["depth_max"] = {"value": far, "auto": not cfg.fusion.depth_max}
     fopts = dataclasses.replace(cfg.fusion, voxel_size=voxel, depth_max=far)
-    if dense == "rgbd":
-        frames = _depth_frames(ctx, cams, depth_views, reflectors, view_masks, stats)
-    else:
-        def _mvs_frames():
-            for n, (d, c) in depths.items():
-                if reflectors:
-                    # masks are image-sized: resize to the working size
-                    vm = {k: _resize_mask(m, c.size) for k, m in view_masks.get(n, {}).items()}
-                    d, k = apply_reflectors(c, d, reflectors, cfg.reflector_fill, vm)
-                    stats["reflector_pixels"] += k
-                yield d, c, read_image(ws.path(scene.view(n).image), scene.image_encoding)
-        frames = _mvs_frames()
-    try:
-        mesh, fstats = tsdf_fuse(frames, fopts, progress=cfg.progress and ctx.progress, total=len(cams))
-    except ValueError as e:
-        raise InputError(f"{ws.input_root}: {e} (global/poses.json gives the scene's depth ranges)") from None
-    if len(mesh.faces) == 0:
-        raise InputError(f"{ws.input_root}: fusion produced an empty mesh (no usable depth)")
+
+    def fuse(refls):
+        stats = {"reflector_pixels": 0}
+        if dense == "rgbd":
+            frames = _depth_frames(ctx, cams, depth_views, refls, view_masks, stats)
+        else:
+            def _mvs_frames():
+                for n, (d, c) in depths.items():
+                    if refls:
+                        # masks are image-sized: resize to the working size
+                        vm = {k: _resize_mask(m, c.size) for k, m in view_masks.get(n, {}).items()}
+                        d, k = apply_reflectors(c, d, refls, cfg.reflector_fill, vm)
+                        stats["reflector_pixels"] += k
+                    yield d, c, read_image(ws.path(scene.view(n).image), scene.image_encoding)
+            frames = _mvs_frames()
+        try:
+            mesh, fstats = tsdf_fuse(frames, fopts, progress=cfg.progress and ctx.progress,
+                                     total=len(cams))
+        except ValueError as e:
+            raise InputError(f"{ws.input_root}: {e} (global/poses.json gives the scene's depth "
+                             "ranges)") from None
+        if len(mesh.faces) == 0:
+            raise InputError(f"{ws.input_root}: fusion produced an empty mesh (no usable depth)")
+        return mesh, fstats, stats
+
+    mesh, fstats, stats = fuse(reflectors)
+    found, cands = [], []
+    if cfg.find_reflectors == "on" or (cfg.find_reflectors == "auto" and not reflectors):
+        t0 = time.perf_counter()
+        found, cands = _find_reflectors(ctx, cams, depths or _depth_maps(ctx, cams, depth_views),
+                                        mesh)
+        report["timings"]["find_reflectors_s"] = time.perf_counter() - t0
+        report["found_reflectors"] = [{k: c[k] for k in ("name", "kept", "reason")} for c in cands]
+        if found:  # G again, without what MVS saw in them
+            mesh, fstats, stats = fuse(reflectors + tuple(found))
+    if not reflectors and not found:
+        log.warning("global_mesh: no reflectors.json and no reflector found in the depth: what "
+                    "depth/MVS sees in mirrors (the mirror world) is fused into the global mesh "
+                    "as if it were real geometry")
+    ws.write_json(L.FOUND_REFLECTORS, {"format": "ibr_pipeline.found_reflectors/1",
+                                       "reflectors": [r.to_dict() for r in found],
+                                       "candidates": cands})
     report["timings"]["fusion_ms_per_frame"] = fstats["ms_per_frame"]
     report["fusion"] = fstats
     report.update(counts={"views": len(cams), "depth_frames": len(depth_views),
-                          "reflectors": len(reflectors), "reflector_pixels": stats["reflector_pixels"],
+                          "reflectors": len(reflectors), "found_reflectors": len(found),
+                          "reflector_pixels": stats["reflector_pixels"],
                           "mesh_vertices": len(mesh.vertices), "mesh_faces": len(mesh.faces)},
                   mirror_world="masked by reflectors.json" if reflectors else
-                  "NOT masked: no reflectors.json, mirror-world geometry may be in the mesh")
+                  f"masked in {len(found)} reflector(s) found behind planes" if found else
+                  "NOT masked: no reflectors.json and none found, mirror-world geometry may be "
+                  "in the mesh")
     # tsdf_fuse returns the mesh in io.mesh.canonical_order (open3d's marching cubes emits it in a
     # thread-dependent order): identical inputs write identical bytes, so a forced rerun leaves
     # every later stage up to date (tests/test_determinism.py)
@@ -296,6 +326,50 @@ def run(ctx: StageContext) -> None:
     ws.write_json(L.GLOBAL_REPORT, report)
     log.info("global_mesh: %d views, %s mesh %d faces, %.1f s", len(cams), dense, len(mesh.faces),
              report["timings"]["total_s"])
+
+
+def _depth_maps(ctx, cams, depth_views) -> dict:
+    """{name: (depth frame, camera at its size)}: the RGB-D frames as the MVS maps are held."""
+    from ..io.images import read_depth_png
+    out = {}
+    for n, cam in cams.items():
+        d = read_depth_png(ctx.ws.path(depth_views[n])).astype(np.float32)
+        out[n] = (d, cam.resized(d.shape[1], d.shape[0]))
+    return out
+
+
+def _find_reflectors(ctx, cams, depths, mesh) -> tuple[list, list[dict]]:
+    """Reflectors found in the MVS depth (geometry/behind_detect.py), each candidate verified on
+    G fused without them; returns (scene.Reflector list, every candidate with its evidence)."""
+    from ..geometry.behind_detect import find_candidates, verify_candidate
+    from ..geometry.raycast import build_scene
+    from ..io.images import read_image
+    from ..scene import Reflector
+    ws, scene = ctx.ws, ctx.scene
+    show = ctx.config.progress and ctx.progress
+    cands = find_candidates(cams, {n: d for n, (d, _) in depths.items()}, progress=show)
+    found = []
+    if any(c["kept"] for c in cands):
+        rc = build_scene(mesh.vertices, mesh.faces)
+        bounds = (mesh.vertices.min(0), mesh.vertices.max(0))
+        class Images(dict):  # read on first use: a candidate scores at most 12 views
+            def __missing__(self, n):
+                self[n] = read_image(ws.path(scene.view(n).image), scene.image_encoding)
+                return self[n]
+        imgs = Images()
+        g_depth: dict = {}  # G's depth in each view, once for all candidates
+        for c in cands:
+            if not c["kept"]:
+                continue
+            ok, why, score = verify_candidate(c, cams, imgs, rc, bounds, g_depth=g_depth)
+            c.update(kept=ok, reason=f"{c['reason']}; {why}", score=score)
+            if ok:
+                found.append(Reflector(c["name"], tuple(c["plane"]), beta=1.0,
+                                       polygon=tuple(map(tuple, c["polygon"])), material="mirror"))
+    for c in cands:
+        log.info("global_mesh: %s %s (best seen in %s): %s", c["name"],
+                 "found" if c["kept"] else "dropped", c["view"], c["reason"])
+    return found, cands
 
 
 def _with_threads(threads: int, fn, *args):
@@ -318,4 +392,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="the global mesh of the training views (RGB-D TSDF "
               "fusion or MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="7", run=run, inputs=inputs, outputs=outputs)
+              config=GlobalMeshConfig, version="8", run=run, inputs=inputs, outputs=outputs)

@@ -64,8 +64,9 @@ def _score_all(ctx: StageContext):
 def run(ctx: StageContext) -> None:
     planes = compute_planes(Loader(ctx.ws, ctx.scene, ctx.config), _score_all(ctx))
     cands = planes["candidates"]
-    log.info("reflectors: %d user-given, %d detected of %d candidate plane(s)%s",
-             sum(r.get("source") == "user" for r in planes["reflectors"]),
+    log.info("reflectors: %d user-given, %d found in the depth by global_mesh, %d detected of %d "
+             "candidate plane(s)%s", sum(r.get("source") == "user" for r in planes["reflectors"]),
+             sum(r.get("source") == "depth" for r in planes["reflectors"]),
              sum(r.get("source") == "detected" for r in planes["reflectors"]), len(cands),
              "" if detect_enabled(ctx.ws, ctx.config) else " (detection off)")
     for c in cands:
@@ -75,4 +76,4 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="reflectors", help="reflector planes: user-given + detected (Xu et al. §4.3)",
-              config=ReflectorsConfig, version="3", run=run, inputs=inputs, outputs=[L.PLANES])
+              config=ReflectorsConfig, version="4", run=run, inputs=inputs, outputs=[L.PLANES])
