@@ -32,9 +32,11 @@ $(STAMP): pyproject.toml requirements.lock scripts/install_system_deps.sh
 # the demo trains DSRNet for its fixed number of steps (no time budget) on one torch thread (the
 # weights depend on the thread count, which the automatic choice takes from the machine's load),
 # so its figures are the same on a quiet and on a loaded machine
+DEMO_SET := --set supersample.time_budget_s=0 --set supersample.train.threads=1
+
 demo: install
-	$(BIN)/ibr run $(OUT)/demo --input sample_data/mirror_room --jobs $(JOBS) --set supersample.time_budget_s=0 --set supersample.train.threads=1
-	$(BIN)/ibr status $(OUT)/demo
+	$(BIN)/ibr run $(OUT)/demo --input sample_data/mirror_room --jobs $(JOBS) $(DEMO_SET)
+	$(BIN)/ibr status $(OUT)/demo $(DEMO_SET)
 	$(BIN)/ibr report $(OUT)/demo $(if $(wildcard $(OUT)/bench/results.jsonl),--bench $(OUT)/bench)
 	@echo "demo done: open $(OUT)/demo/report/index.html; walk through it in a browser: make view"
 

@@ -68,10 +68,10 @@ def behind_outlines(camera: Camera, depth: np.ndarray, plane, *, behind: float =
     world is as far behind as the reflected objects are in front; a picture frame, a socket or a
     shallow niche is not). The behind pixels are closed (`close` of the larger side) and each
     outer contour whose area is `min_area`..`max_area` of the image, with at most `border` of
-    its outline on the image's frame (a mirror that no view sees whole is still found, in parts
-    the views' hull joins: `find_candidates`), and whose surrounding ring inside the image (`ring` of the larger side) has depth on at least
-    `min_ring_depth` of its pixels, that depth on the plane (within `on_plane`) on at least
-    `enclosed` of them, is a candidate. Returns per candidate: outline (K, 2) convex polygon in
+    its outline on the image's frame (a reflector the frame cuts on one side is still found, the
+    views' parts joined by `find_candidates`), and whose surrounding ring inside the image
+    (`ring` of the larger side) has depth on at least `min_ring_depth` of its pixels, that depth
+    on the plane (within `on_plane`) on at least `enclosed` of them, is a candidate. Returns per candidate: outline (K, 2) convex polygon in
     `camera`'s pixels (pixel centres = integers), area (fraction of the image), enclosed (ring
     fraction on the plane), behind (median relative depth behind the plane inside)."""
     import cv2
