@@ -219,6 +219,23 @@ def find_candidates(cams: dict, depths: dict, min_views: float = 0.25, progress:
     return out
 
 
+def same_reflector(cand: dict, plane, polygon, angle_deg: float = 5.0) -> bool:
+    """Is candidate `cand` (plane, polygon) the reflector (plane (4,), polygon (K, 3) or None)
+    given already? Planes within `angle_deg` and the candidate's centre, put on that plane,
+    inside its polygon (anywhere on it without one) and off it by less than the candidate's
+    diameter."""
+    from .planes import polygon_contains
+    pa, pb = np.asarray(cand["plane"], np.float64), np.asarray(plane, np.float64)
+    if abs(float(pa[:3] @ pb[:3])) < np.cos(np.radians(angle_deg)):
+        return False
+    poly = np.asarray(cand["polygon"], np.float64)
+    c = poly.mean(0)
+    off = float(c @ pb[:3] + pb[3])
+    if abs(off) > np.ptp(poly, axis=0).max():
+        return False
+    return polygon is None or bool(polygon_contains(pb, np.asarray(polygon), (c - off * pb[:3])[None])[0])
+
+
 def verify_candidate(cand: dict, cams: dict, images: dict, scene, bounds, *,
                      threshold: float = 0.02, mirror_ratio: float = 0.5, min_pairs: int = 4,
                      min_mask: int = 100, min_gap: float = 0.01,

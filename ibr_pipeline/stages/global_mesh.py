@@ -296,7 +296,7 @@ def run(ctx: StageContext) -> None:
     if cfg.find_reflectors == "on" or (cfg.find_reflectors == "auto" and not reflectors):
         t0 = time.perf_counter()
         found, cands = _find_reflectors(ctx, cams, depths or _depth_maps(ctx, cams, depth_views),
-                                        mesh)
+                                        mesh, reflectors)
         report["timings"]["find_reflectors_s"] = time.perf_counter() - t0
         report["found_reflectors"] = [{k: c[k] for k in ("name", "kept", "reason")} for c in cands]
         if found:  # G again, without what MVS saw in them
@@ -338,16 +338,21 @@ def _depth_maps(ctx, cams, depth_views) -> dict:
     return out
 
 
-def _find_reflectors(ctx, cams, depths, mesh) -> tuple[list, list[dict]]:
+def _find_reflectors(ctx, cams, depths, mesh, given=()) -> tuple[list, list[dict]]:
     """Reflectors found in the MVS depth (geometry/behind_detect.py), each candidate verified on
-    G fused without them; returns (scene.Reflector list, every candidate with its evidence)."""
-    from ..geometry.behind_detect import find_candidates, verify_candidate
+    G fused without them; one that is a `given` reflector already is dropped as that. Returns
+    (scene.Reflector list, every candidate with its evidence)."""
+    from ..geometry.behind_detect import find_candidates, same_reflector, verify_candidate
     from ..geometry.raycast import build_scene
     from ..io.images import read_image
     from ..scene import Reflector
     ws, scene = ctx.ws, ctx.scene
     show = ctx.config.progress and ctx.progress
     cands = find_candidates(cams, {n: d for n, (d, _) in depths.items()}, progress=show)
+    for c in cands:
+        same = next((r.name for r in given if same_reflector(c, r.plane, r.polygon)), None)
+        if c["kept"] and same is not None:
+            c.update(kept=False, reason=f"{c['reason']}; the given reflector {same}")
     found = []
     if any(c["kept"] for c in cands):
         rc = build_scene(mesh.vertices, mesh.faces)

@@ -211,6 +211,26 @@ def test_a_region_behind_the_wall_in_every_view_is_one_candidate():
     assert find_candidates({"v0": cams["v0"]}, {"v0": depths["v0"]}) == []
 
 
+def _capture(src, mirror: bool):
+    """An RGB-D input folder (images/, depth/, cameras.json) of the ray-cast room."""
+    from ibr_pipeline.geometry.raycast import build_scene
+    from ibr_pipeline.io.images import write_depth_png, write_image
+    from ibr_pipeline.scene import cameras_to_json
+    K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
+    # seen from the left, the mirror shows the right-hand wall, which the cameras see directly
+    # too (a mirror showing only what no camera sees cannot be told from a hole by this cue)
+    cams = {f"v{i}.png": Camera.look_at([0.5 + 0.12 * i, 1.4 + 0.1 * (i % 2), 1.3 + 0.04 * i],
+                                        [2.4, 3.6, 1.5], (0, 0, 1), K, 160, 120) for i in range(8)}
+    V, F = _room(niche=not mirror)
+    photos, depths = _photos(build_scene(V, F), cams, mirror, depth=True)
+    (src / "images").mkdir(parents=True)
+    (src / "depth").mkdir()
+    for n in cams:
+        write_image(src / "images" / n, photos[n], "srgb")
+        write_depth_png(src / "depth" / n, depths[n])
+    (src / "cameras.json").write_text(cameras_to_json(cams))
+
+
 @pytest.mark.parametrize("mirror", [True, False])
 def test_global_mesh_finds_the_mirror_and_removes_its_mirror_world(mirror, tmp_path):
     """An RGB-D capture of the ray-cast room, no reflectors.json: global_mesh finds the mirror
@@ -220,24 +240,9 @@ def test_global_mesh_finds_the_mirror_and_removes_its_mirror_world(mirror, tmp_p
     import json
 
     from ibr_pipeline.cli import main
-    from ibr_pipeline.geometry.raycast import build_scene
-    from ibr_pipeline.io.images import write_depth_png, write_image
     from ibr_pipeline.io.mesh import read_ply
-    from ibr_pipeline.scene import cameras_to_json
-    K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
-    # seen from the left, the mirror shows the right-hand wall, which the cameras see directly
-    # too (a mirror showing only what no camera sees cannot be told from a hole by this cue)
-    cams = {f"v{i}.png": Camera.look_at([0.5 + 0.12 * i, 1.4 + 0.1 * (i % 2), 1.3 + 0.04 * i],
-                                        [2.4, 3.6, 1.5], (0, 0, 1), K, 160, 120) for i in range(8)}
-    V, F = _room(niche=not mirror)
-    photos, depths = _photos(build_scene(V, F), cams, mirror, depth=True)
     src = tmp_path / "input"
-    (src / "images").mkdir(parents=True)
-    (src / "depth").mkdir()
-    for n in cams:
-        write_image(src / "images" / n, photos[n], "srgb")
-        write_depth_png(src / "depth" / n, depths[n])
-    (src / "cameras.json").write_text(cameras_to_json(cams))
+    _capture(src, mirror)
     ws = tmp_path / "ws"
     assert main(["run", str(ws), "--input", str(src), "--until", "global_mesh",
                  "--set", "global_mesh.progress=false"]) == 0
@@ -260,3 +265,31 @@ def test_global_mesh_finds_the_mirror_and_removes_its_mirror_world(mirror, tmp_p
         assert found["reflectors"] == [] and not any(c["kept"] for c in found["candidates"])
         assert report["mirror_world"].startswith("NOT masked")
         assert behind > 0.005, behind                # the niche's back wall stays
+
+
+def test_a_candidate_on_a_given_reflector_is_that_reflector():
+    from ibr_pipeline.geometry.behind_detect import same_reflector
+    cand = {"plane": MIRROR.tolist(), "polygon": (HOLE + [0.1, 0.0, 0.05]).tolist()}
+    assert same_reflector(cand, MIRROR, HOLE)
+    assert same_reflector(cand, MIRROR, None)                   # a plane without extent
+    assert not same_reflector(cand, MIRROR, HOLE + [2.0, 0, 0])  # elsewhere on the wall
+    assert not same_reflector(cand, [1.0, 0, 0, -0.5], None)     # another wall
+    assert not same_reflector(cand, MIRROR + [0, 0, 0, 3.0], HOLE)  # a parallel plane 3 away
+
+
+def test_a_mirror_given_in_reflectors_json_is_not_found_again(tmp_path):
+    """find_reflectors = on with the mirror in reflectors.json: its candidate is that reflector,
+    not a second one on the same glass."""
+    import json
+
+    from ibr_pipeline.cli import main
+    src = tmp_path / "input"
+    _capture(src, True)
+    (src / "reflectors.json").write_text(json.dumps({"reflectors": [
+        {"name": "mirror", "plane": MIRROR.tolist(), "polygon": HOLE.tolist(), "beta": 1.0}]}))
+    ws = tmp_path / "ws"
+    assert main(["run", str(ws), "--input", str(src), "--until", "global_mesh",
+                 "--set", "global_mesh.progress=false", "--set", "global_mesh.find_reflectors=on"]) == 0
+    found = json.loads((ws / "global" / "found_reflectors.json").read_text())
+    assert found["reflectors"] == [], found["reflectors"]
+    assert any("the given reflector mirror" in c["reason"] for c in found["candidates"]), found
