@@ -14,10 +14,41 @@ with the multi-view cue (reflector_detect.py) and keeps only those a reflection 
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from ..config import Options, param
 from ..scene import Camera
 from .planes import fit_plane, ray_plane_hits
+
+
+@dataclass(frozen=True)
+class BehindOptions(Options):
+    """Finding reflectors behind planes of the depth; `global_mesh` embeds these as
+    [global_mesh.behind] (docs/GLOBAL_MESH.md "Mirrors"). Lengths are fractions of the plane's
+    depth or of the image: scale-free."""
+
+    behind: float = param(0.1, "a region is behind a plane when its depth exceeds the plane's "
+                          "along the ray by more than this fraction of it", min=0.01, max=10.0)
+    enclosed: float = param(0.6, "share of the ring around a region whose depth lies on the plane",
+                            min=0.0, max=1.0)
+    border: float = param(0.25, "largest share of a region's outline on the image frame",
+                          min=0.0, max=1.0)
+    min_area: float = param(0.002, "smallest region, fraction of the image", min=0.0, max=1.0)
+    max_area: float = param(0.25, "largest region, fraction of the image", min=0.0, max=1.0)
+    min_views: float = param(0.25, "a candidate is found in at least this share of the views "
+                             "whose frame holds its centre (and in 2)", min=0.0, max=1.0)
+    max_views: int = param(12, "views, spread over the capture, a candidate is verified on",
+                           min=2, max=10000)
+    threshold: float = param(0.02, "verification: median surface-warp error above which the "
+                             "plane does not explain the region (linear intensity)",
+                             min=1e-4, max=1.0)
+    mirror_ratio: float = param(0.5, "verification: mirror-warp / surface-warp error below which "
+                                "the mirrored G explains it", min=0.01, max=10.0)
+
+
+_D = BehindOptions()
 
 
 def _odd(n: float) -> int:
@@ -58,10 +89,11 @@ def view_planes(camera: Camera, depth: np.ndarray, rel_dist: float = 0.01, max_p
     return out
 
 
-def behind_outlines(camera: Camera, depth: np.ndarray, plane, *, behind: float = 0.1,
+def behind_outlines(camera: Camera, depth: np.ndarray, plane, *, behind: float = _D.behind,
                     on_plane: float = 0.02, close: float = 0.01, ring: float = 0.02,
-                    min_area: float = 0.002, max_area: float = 0.25, enclosed: float = 0.6,
-                    min_ring_depth: float = 0.3, border: float = 0.25) -> list[dict]:
+                    min_area: float = _D.min_area, max_area: float = _D.max_area,
+                    enclosed: float = _D.enclosed, min_ring_depth: float = 0.3,
+                    border: float = _D.border) -> list[dict]:
     """Regions of one depth map (h, w) that lie behind `plane` and are enclosed by it.
 
     Behind: depth beyond the plane's depth along the ray by more than `behind` of it (a mirror
@@ -168,8 +200,8 @@ def _hull_on_plane(plane, polygons: list) -> np.ndarray:
     return origin + Q[:, :1] * u + Q[:, 1:] * v
 
 
-def find_candidates(cams: dict, depths: dict, min_views: float = 0.25, progress: bool = False,
-                    **kw) -> list[dict]:
+def find_candidates(cams: dict, depths: dict, min_views: float = _D.min_views,
+                    progress: bool = False, **kw) -> list[dict]:
     """Reflector candidates of a capture from its depth maps. cams: name -> Camera; depths:
     name -> (h, w) z-depth (any size, 0 = none). Every view's planes (`view_planes`) and the
     regions behind them (`behind_outlines`, options `kw`) are placed on the surface around them
@@ -237,9 +269,10 @@ def same_reflector(cand: dict, plane, polygon, angle_deg: float = 5.0) -> bool:
 
 
 def verify_candidate(cand: dict, cams: dict, images: dict, scene, bounds, *,
-                     threshold: float = 0.02, mirror_ratio: float = 0.5, min_pairs: int = 4,
-                     min_mask: int = 100, min_gap: float = 0.01,
-                     max_views: int = 12, g_depth: dict | None = None) -> tuple[bool, str, dict]:
+                     threshold: float = _D.threshold, mirror_ratio: float = _D.mirror_ratio,
+                     min_pairs: int = 4, min_mask: int = 100, min_gap: float = 0.01,
+                     max_views: int = _D.max_views,
+                     g_depth: dict | None = None) -> tuple[bool, str, dict]:
     """Is the region behind a plane a reflection? The multi-view cue of reflector_detect.py on
     the mesh fused without it (`scene`: its open3d RaycastingScene, `bounds` its box): each view's
     pixels inside the polygon where that mesh lies on or behind the plane are warped to the

@@ -23,6 +23,7 @@ from .. import layout as L
 from ..config import StageConfig, param
 from ..errors import ConfigError, InputError
 from ..executors import LocalExecutor
+from ..geometry.behind_detect import BehindOptions
 from ..geometry.fusion import FusionOptions
 from ..geometry.patchmatch import PatchMatchOptions
 from ..geometry.user_reflectors import user_reflectors
@@ -56,6 +57,8 @@ class GlobalMeshConfig(StageConfig):
                                  "mirrored mesh explains (geometry/behind_detect.py); they are "
                                  "masked out of G like reflectors.json's. 'auto' = only when no "
                                  "reflectors.json is given", choices=("auto", "on", "off"))
+    behind: BehindOptions = param(BehindOptions(), "finding reflectors behind planes "
+                                  "(find_reflectors)")
     mvs: str = param("patchmatch", "MVS method: patchmatch (slanted planes, propagation, "
                      "geometric consistency; geometry/patchmatch.py) or sweep (fronto-parallel "
                      "plane sweep, geometry/mvs.py)", choices=("patchmatch", "sweep"))
@@ -348,7 +351,10 @@ def _find_reflectors(ctx, cams, depths, mesh, given=()) -> tuple[list, list[dict
     from ..scene import Reflector
     ws, scene = ctx.ws, ctx.scene
     show = ctx.config.progress and ctx.progress
-    cands = find_candidates(cams, {n: d for n, (d, _) in depths.items()}, progress=show)
+    o = ctx.config.behind
+    cands = find_candidates(cams, {n: d for n, (d, _) in depths.items()}, min_views=o.min_views,
+                            progress=show, behind=o.behind, enclosed=o.enclosed, border=o.border,
+                            min_area=o.min_area, max_area=o.max_area)
     for c in cands:
         same = next((r.name for r in given if same_reflector(c, r.plane, r.polygon)), None)
         if c["kept"] and same is not None:
@@ -366,7 +372,9 @@ def _find_reflectors(ctx, cams, depths, mesh, given=()) -> tuple[list, list[dict
         for c in cands:
             if not c["kept"]:
                 continue
-            ok, why, score = verify_candidate(c, cams, imgs, rc, bounds, g_depth=g_depth)
+            ok, why, score = verify_candidate(c, cams, imgs, rc, bounds, threshold=o.threshold,
+                                              mirror_ratio=o.mirror_ratio,
+                                              max_views=o.max_views, g_depth=g_depth)
             c.update(kept=ok, reason=f"{c['reason']}; {why}", score=score)
             if ok:
                 found.append(Reflector(c["name"], tuple(c["plane"]), beta=1.0,
