@@ -155,6 +155,9 @@ def build(ws_root: Path, fig_dir: Path, bench_dirs: list[Path] | None = None) ->
     blocks = [("p", f"Workspace `{ws_root}`; {len(views)} input views, "
                     f"{len(scene.get('reflectors', []))} user-given reflector(s)."),
               ("p", input_line(scene))]
+    line = reflectors_line(S.read_json(ws_root / L.PLANES), S.read_json(ws_root / L.FOUND_REFLECTORS))
+    if line:
+        blocks.append(("p", line))
     frame = S.read_json(ws_root / L.POSES_REPORT)
     if isinstance(frame, dict) and "units" in frame:
         src = ws_root / L.POSES_REPORT
