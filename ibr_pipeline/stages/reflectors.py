@@ -2,11 +2,12 @@
 planes, "we detect reflective planes ... using a multi-view consistency cue"), once for the scene.
 
 Reads global/cameras.json, global/mesh.ply (G), global/reflectors.json (the user's planes in the
-scene frame, when input/reflectors.json exists) and, when detection runs, every registered view's
-image and views/<v>/depth.npy. Writes reflection/planes.json: the reflectors (user-given, then
-detected) and every candidate plane with its evidence and the reason it was kept or dropped
-(docs/REFLECTION.md, "Detection"). Candidates are scored in parallel (`--jobs`); the per-view
-`reflection` stage reads the file as an ordinary input. The work is
+scene frame, when input/reflectors.json exists), global/found_reflectors.json (what global_mesh
+found behind planes of the depth: taken as given) and, when detection runs, every registered
+view's image and views/<v>/depth.npy. Writes reflection/planes.json: the reflectors (user-given,
+then found by global_mesh, then detected) and every candidate with its evidence and the reason
+it was kept or dropped (docs/REFLECTION.md, "Detection"). Candidates are scored in parallel
+(`--jobs`); the per-view `reflection` stage reads the file as an ordinary input. The work is
 geometry/reflection_views.py's.
 """
 from __future__ import annotations
