@@ -141,7 +141,7 @@ def main(a: argparse.Namespace) -> int:
     stages.sort(key=STAGE_ORDER.index)
     first = STAGE_ORDER[STAGE_ORDER.index(stages[0]) - 1] if stages[0] != "ingest" else None
     counts = sorted({int(v) for v in a.views.split(",") if v})
-    out = Path(a.out)
+    out = Path(a.out).resolve()  # the timed processes run inside each variant's tree
     out.mkdir(parents=True, exist_ok=True)
     mp = a.width * a.height / 1e6
     rows = []
