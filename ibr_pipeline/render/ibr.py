@@ -27,7 +27,7 @@ from .. import layout as L
 from ..config import Options, param
 from ..errors import InputError
 from ..scene import Camera
-from . import blend, selection
+from . import blend, post_nb, selection
 
 log = logging.getLogger("ibr_pipeline.render")
 
@@ -325,32 +325,26 @@ class IBRModel:
         items0 = [(k, float(wk)) for k, wk in zip(sel, w)]
         layer_fn = self._render_layer_per_view if s.visibility == "per_view" else self._render_layer
         acc, bacc, front = layer_fn(camera, 0, items0)
-        covered = acc[..., 3] > 0
-        inv = 1.0 / np.where(covered, acc[..., 3], 1.0)
-        acc[..., 3] = bacc
-        color4 = acc * inv[..., None]  # normalised blend of (I0 rgb, beta); 0 where uncovered
+        # normalised blend of (I0 rgb, beta), 0 where uncovered; box of the blended beta > 0
+        color4, covered, depth, box = post_nb.normalise(acc, bacc, front)
         items1 = [(k, wk) for k, wk in items0 if layers and self.views[k].layers[1] is not None]
-        refl = color4[..., 3] > 1e-4
-        box = _bbox(refl) if items1 else None
-        i1 = cov1 = None
+        box = box if items1 else None
         if box is not None:  # reflection layer only where the blended beta is > 0
             acc1, _, _ = layer_fn(camera, 1, items1, box)
-            x, y, bw, bh = box
-            cov1 = np.zeros(covered.shape, bool)
-            cov1[y:y + bh, x:x + bw] = acc1[..., 3] > 0
-            i1 = np.zeros((*covered.shape, 3), np.float32)
-            c1 = cov1[y:y + bh, x:x + bw]
-            i1[y:y + bh, x:x + bw] = acc1[..., :3] / np.where(c1, acc1[..., 3], 1.0)[..., None]
+            cov1 = acc1[..., 3] > 0
+            i1 = acc1[..., :3] / np.where(cov1, acc1[..., 3], 1.0)[..., None]
         t2 = time.perf_counter()
         if s.fill_holes:
-            color4 = blend.fill_holes(color4, covered, s.hole_decay_px)
-        beta = np.clip(color4[..., 3], 0.0, 1.0)
-        if s.fill_holes and i1 is not None and ((beta > 1e-4) & ~cov1).any():
-            i1 = blend.fill_holes(i1, cov1, s.hole_decay_px)
-        color = color4[..., :3] if i1 is None else blend.compose(color4[..., :3], beta, i1)
-        depth = np.where(covered & (front < 1e29), front, 0.0).astype(np.float32)
+            color4 = post_nb.fill_holes(color4, covered, s.hole_decay_px)
+        i1_box = None
+        if box is not None:  # Eq. 3 inside the box; I1 is 0 outside it
+            x, y, bw, bh = box
+            if s.fill_holes and ((color4[y:y + bh, x:x + bw, 3] > 1e-4) & ~cov1).any():
+                i1 = post_nb.fill_holes(i1, cov1, s.hole_decay_px)
+            i1_box = i1
+        color, beta = post_nb.finish(color4, i1_box, box)
         t3 = time.perf_counter()
-        return Frame(np.clip(color, 0.0, None).astype(np.float32), depth,
+        return Frame(color, depth,
                      [self.names[k] for k in sel], (t3 - t0) * 1e3, camera, covered, beta,
                      {"select_ms": (t1 - t0) * 1e3, "gl_ms": (t2 - t1) * 1e3,
                       "post_ms": (t3 - t2) * 1e3})
@@ -416,14 +410,6 @@ def auto_visibility(ws) -> str:
     except (OSError, json.JSONDecodeError):
         raise InputError(f"{p}: malformed JSON") from None
     return "fuzzy" if dense in (None, "rgbd") else "per_view"
-
-
-def _bbox(mask: np.ndarray):
-    """(x, y, w, h) of the True pixels of `mask` (None when there are none)."""
-    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
-    if len(rows) == 0:
-        return None
-    return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
 
 
 # --- loading one view from a workspace -----------------------------------------------------------
