@@ -92,8 +92,10 @@ def read_float(fbo, attachment: int, box, components: int = 4) -> np.ndarray:
     """Read a float attachment back as an (h, w, C) array in image row order; `box` is the size
     (W, H) of the whole target or a sub-rectangle (x, y, w, h)."""
     x, y, w, h = (0, 0, *box) if len(box) == 2 else box
-    data = fbo.read(viewport=(x, y, w, h), attachment=attachment, components=components, dtype="f4")
-    return np.frombuffer(data, dtype=np.float32).reshape(h, w, components).copy()
+    out = np.empty((h, w, components), np.float32)  # written in place: no bytes object to copy
+    fbo.read_into(out, viewport=(x, y, w, h), attachment=attachment, components=components,
+                  dtype="f4")
+    return out
 
 
 def upload_texture(image: np.ndarray):
