@@ -127,15 +127,13 @@ def blend(colors: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return out.astype(np.float32), wsum.astype(np.float32)
 
 
-def _pyramid_fill(color: np.ndarray, weight: np.ndarray, levels: int) -> np.ndarray:
-    """Push-pull from level 1 down: the smooth fill at half resolution (covered cells keep their
-    colour there), returned upsampled to full resolution."""
+def push_pyramid(cw: np.ndarray, ww: np.ndarray, levels: int) -> list:
+    """The push half of push-pull: weighted colour `cw` (H, W, C) and weight `ww` (H, W) box-filtered
+    to half size per level, [(cw, ww), ...] from level 1 down, stopping where every cell has weight."""
     import cv2
 
-    h, w = weight.shape
     pyr = []
-    cw, ww = color * weight[..., None], weight
-    for _ in range(levels):  # push: weighted box-filter pyramid
+    for _ in range(levels):
         if min(ww.shape) < 2:
             break
         size = ((ww.shape[1] + 1) // 2, (ww.shape[0] + 1) // 2)
@@ -144,6 +142,16 @@ def _pyramid_fill(color: np.ndarray, weight: np.ndarray, levels: int) -> np.ndar
         pyr.append((cw, ww))
         if ww.min() > 0:
             break
+    return pyr
+
+
+def _pyramid_fill(color: np.ndarray, weight: np.ndarray, levels: int) -> np.ndarray:
+    """Push-pull from level 1 down: the smooth fill at half resolution (covered cells keep their
+    colour there), returned upsampled to full resolution."""
+    import cv2
+
+    h, w = weight.shape
+    pyr = push_pyramid(color * weight[..., None], weight, levels)
     cw, ww = pyr[-1]
     out = cw / np.maximum(ww, 1e-12)[..., None]
     for cw, ww in reversed(pyr[:-1]):  # pull: fill each level from the coarser one

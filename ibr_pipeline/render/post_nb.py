@@ -122,18 +122,11 @@ def _half_fill(color: np.ndarray, weight: np.ndarray, levels: int) -> np.ndarray
     """blend._pyramid_fill without its last step (the upsampling to full resolution)."""
     import cv2
 
+    from .blend import push_pyramid
+
     cw = np.empty_like(color)
     _weighted(color, weight, cw)
-    ww, pyr = weight, []
-    for _ in range(levels):
-        if min(ww.shape) < 2:
-            break
-        size = ((ww.shape[1] + 1) // 2, (ww.shape[0] + 1) // 2)
-        cw = cv2.resize(cw, size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], -1)
-        ww = cv2.resize(ww, size, interpolation=cv2.INTER_AREA)
-        pyr.append((cw, ww))
-        if ww.min() > 0:
-            break
+    pyr = push_pyramid(cw, weight, levels)
     cw, ww = pyr[-1]
     out = np.empty_like(cw)
     _divide(cw, ww, out)
