@@ -27,7 +27,7 @@ from .. import layout as L
 from ..config import Options, param
 from ..errors import InputError
 from ..scene import Camera
-from . import blend, post_nb, selection
+from . import blend, selection
 
 log = logging.getLogger("ibr_pipeline.render")
 
@@ -315,6 +315,7 @@ class IBRModel:
     def render(self, camera: Camera, exclude=(), previous: "Frame | None" = None,
                layers: bool = True) -> Frame:
         """Render `camera`: select views, blend both layers, fill holes, compose (Eq. 3)."""
+        from . import post_nb  # numba pulls in scipy; `ibr --help` must stay light
         t0 = time.perf_counter()
         s = self.settings
         sel, d = self.select(camera, exclude, previous)
