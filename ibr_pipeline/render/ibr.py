@@ -338,16 +338,15 @@ class IBRModel:
         if s.fill_holes:
             color4 = post_nb.fill_holes(color4, covered, s.hole_decay_px)
         i1_box = None
-        if box is not None:  # Eq. 3 inside the box; I1 is 0 outside it
+        if box is not None:  # Eq. 3 inside the box (the frame when I1 is filled); I1 is 0 outside
             x, y, bw, bh = box
             H, W = covered.shape
             refl = color4[..., 3] > 1e-4  # after the fill, beta reaches into holes beyond the box
             inside = refl[y:y + bh, x:x + bw]
             if s.fill_holes and ((inside & ~cov1).any() or refl.sum() > inside.sum()):
                 # I1 push-pull filled over the whole frame (uncovered outside the box) and
-                # composed wherever the filled beta is: filling and composing inside the box
-                # alone darkened large holes next to reflectors (0.38 → 0.15 mean colour on a
-                # leave-one-out render) and cost DSRNet 0.27 dB (docs/BENCHMARKS.md)
+                # composed wherever the filled beta is, so that holes next to a reflector keep
+                # its reflection: the box alone leaves them dark (docs/BENCHMARKS.md, session 28)
                 full, cov_full = np.zeros((H, W, 3), np.float32), np.zeros((H, W), bool)
                 full[y:y + bh, x:x + bw], cov_full[y:y + bh, x:x + bw] = i1, cov1
                 i1, box = post_nb.fill_holes(full, cov_full, s.hole_decay_px), (0, 0, W, H)
