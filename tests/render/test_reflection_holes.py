@@ -5,19 +5,17 @@ import dataclasses
 import numpy as np
 
 from ibr_pipeline.render.ibr import IBRModel, LayerData, RenderSettings, ViewData
-from tests.render.test_per_view import H, W, _camera, _photo
+from tests.render.test_per_view import _camera, _view
 
 I1_GREY = 0.3
 
 
 def _reflective_view(name, cam):
-    img, X = _photo(cam)
-    idx = np.arange(H * W).reshape(H, W)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-    faces = np.r_[np.c_[a, c, b], np.c_[b, c, d]]
-    ones = np.ones((H, W), np.float32)
-    surface = LayerData(X.reshape(-1, 3), faces, img, ones, beta=0.8 * ones)
-    reflection = LayerData(X.reshape(-1, 3), faces, np.full((H, W, 3), I1_GREY, np.float32), ones)
+    """test_per_view's wall mesh with beta 0.8 everywhere and a grey reflection layer on it."""
+    s = _view(name, cam).layers[0]
+    beta = np.full(s.alpha.shape, 0.8, np.float32)
+    surface = LayerData(s.vertices, s.faces, s.rgb, s.alpha, beta=beta)
+    reflection = LayerData(s.vertices, s.faces, np.full(s.rgb.shape, I1_GREY, np.float32), s.alpha)
     return ViewData(name, cam, (surface, reflection))
 
 
