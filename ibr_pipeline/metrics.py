@@ -93,14 +93,16 @@ def flip(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None
 def all_metrics(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None,
                 with_flip: bool = True) -> dict[str, float]:
     """{'psnr', 'ssim', 'flip'} over the whole image, and '<name>_mask' over `mask` if given."""
-    out = {"psnr": psnr(reference, test), "ssim": ssim(reference, test)}
+    _check(reference, test, mask)
+    sm = ssim_map(reference, test)  # one map for the whole image and the mask, as for FLIP
+    out = {"psnr": psnr(reference, test), "ssim": _masked_mean(sm, None)}
     fm = flip_map(reference, test) if with_flip else None
     if fm is not None:
         out["flip"] = float(fm.mean())
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         out["psnr_mask"] = psnr(reference, test, mask)
-        out["ssim_mask"] = ssim(reference, test, mask)
+        out["ssim_mask"] = _masked_mean(sm, mask)
         if fm is not None:
             out["flip_mask"] = _masked_mean(fm, mask)
     return out

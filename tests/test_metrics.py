@@ -50,3 +50,22 @@ def test_shape_mismatch_is_an_error(pair):
     a, _ = pair
     with pytest.raises(ValueError, match="same"):
         metrics.psnr(a, a[:10])
+
+
+def test_all_metrics_agrees_with_each_metric(pair):
+    """all_metrics shares one SSIM and one FLIP map between the whole image and the mask; the
+    figures must be those of the single-metric functions."""
+    a, b = pair
+    mask = np.zeros(a.shape[:2], bool)
+    mask[10:30, 5:40] = True
+    m = metrics.all_metrics(a, b, mask)
+    assert m["psnr"] == pytest.approx(metrics.psnr(a, b), rel=1e-12)
+    assert m["ssim"] == pytest.approx(metrics.ssim(a, b), rel=1e-12)
+    assert m["flip"] == pytest.approx(metrics.flip(a, b), rel=1e-9)
+    assert m["psnr_mask"] == pytest.approx(metrics.psnr(a, b, mask), rel=1e-12)
+    assert m["ssim_mask"] == pytest.approx(metrics.ssim(a, b, mask), rel=1e-12)
+    assert m["flip_mask"] == pytest.approx(metrics.flip(a, b, mask), rel=1e-9)
+    assert m["ssim_mask"] != pytest.approx(m["ssim"], rel=1e-6)  # the mask is applied
+    assert "flip" not in metrics.all_metrics(a, b, with_flip=False)
+    with pytest.raises(ValueError):
+        metrics.all_metrics(a, b, mask[:-1])

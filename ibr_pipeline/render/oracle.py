@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cache import ProcessCache, file_key
 from ..errors import InputError
 from ..scene import Camera, cameras_from_json, read_reflectors
 from . import blend
@@ -176,11 +177,31 @@ class GroundTruth:
         return ViewData(name, cam, (LayerData(v0, f0, i0, alpha0, beta), LayerData(v1, f1, i1, alpha1)))
 
     def model(self, layers: bool = True, step: int = GRID_STEP, settings: RenderSettings | None = None,
-              names=None, progress: bool = False):
+              names=None, progress: bool = False, jobs: int = 1):
+        """The IBRModel of the GT-built views; `jobs` worker processes build the views (each its
+        own GroundTruth: the mirrored ray-casting scenes do not pickle), in view order."""
         from tqdm import tqdm
 
+        from ..executors import LocalExecutor
         from .ibr import IBRModel
         names = list(self.cameras) if names is None else list(names)
-        views = [self.view(n, layers, step, settings)
-                 for n in tqdm(names, desc="oracle views", disable=not progress, leave=False)]
+        views = [None] * len(names)
+        with LocalExecutor(max(1, min(jobs, len(names)))) as ex, \
+                tqdm(total=len(names), desc="oracle views", disable=not progress, leave=False) as bar:
+            if ex.jobs == 1:
+                done = ((i, self.view(n, layers, step, settings)) for i, n in enumerate(names))
+            else:
+                done = ex.results(_view_task, [(self.root, n, layers, step, settings) for n in names])
+            for i, v in done:
+                views[i] = v
+                bar.update(1)
         return IBRModel(views, settings)
+
+
+_TRUTHS = ProcessCache(1)
+
+
+def _view_task(root: Path, name: str, layers: bool, step: int, settings) -> ViewData:
+    """GroundTruth(root).view in a worker process, one GroundTruth per scene there."""
+    gt = _TRUTHS.get(file_key(Path(root) / "gt" / "mesh.ply"), lambda: GroundTruth(root))
+    return gt.view(name, layers, step, settings)

@@ -218,6 +218,30 @@ def _scores(ref, img, mask, with_flip: bool) -> dict:
     return {k: float(v) for k, v in m.items()}
 
 
+def _score_view(ref, imgs: dict, mask, enc: str, with_flip: bool) -> dict:
+    """{method: scores} of one test camera: `_scores` on the stored encoding `enc` (published
+    figures are on the stored, usually sRGB, images), and PSNR in the other space, named."""
+    from ..io.images import encode
+    other = "linear" if enc == "srgb" else "srgb"
+    out = {}
+    for k, img in imgs.items():
+        sc = _scores(encode(ref, enc), encode(img, enc), mask, with_flip)
+        sc[f"psnr_{other}"] = _psnr_in(other, ref, img)
+        out[k] = sc
+    return out
+
+
+def _score_views(ctx: StageContext, argsets: list) -> list[dict]:
+    """_score_view over the test cameras, in their order: ctx.jobs worker processes (FLIP and
+    SSIM are most of the stage's time on a full-size scene), in this process when jobs = 1."""
+    from ..executors import LocalExecutor
+    out = [None] * len(argsets)
+    with LocalExecutor(max(1, min(ctx.jobs, len(argsets)))) as ex:
+        for i, res in ex.results(_score_view, argsets):
+            out[i] = res
+    return out
+
+
 def _psnr_in(space: str, ref, img) -> float:
     """PSNR of two linear images after encoding both in `space`."""
     from .. import metrics
@@ -256,12 +280,11 @@ def temporal(frames: list, gt: list | None) -> dict:
 def run(ctx: StageContext) -> None:
     import numpy as np
 
-    from ..io.images import encode, read_image, write_image
+    from ..io.images import read_image, write_image
     from ..render.video import to_display, write_mp4
 
     ws, cfg = ctx.ws, ctx.config
     enc = ctx.scene.image_encoding
-    other = "linear" if enc == "srgb" else "srgb"
     test = _set_cameras(ctx, "test")
     if not test:
         raise InputError(f"{ws.path(L.render_file('test', 'cameras.json'))}: no test renders (run render_views)")
@@ -273,7 +296,7 @@ def run(ctx: StageContext) -> None:
     rows = {"ours": [], "single": [], "oracle": [], "naive": [], "nearest": []}
     holes = _holes(ctx, "test")
     projected = _projected_reflector_masks(ctx, test) if source == "heldout_captures" else {}
-    per_view = []
+    per_view, to_score = [], []
     for i, (name, cam) in enumerate(test.items()):
         key = _gt_image_key(ctx, "test", name, source)
         ref = read_image(ws.path(key), enc)
@@ -296,12 +319,7 @@ def run(ctx: StageContext) -> None:
             naive_ms.append(ms)
             entry["nearest_view"], imgs["nearest"] = naive.nearest(
                 cam, exclude=(name,) if source == "leave_one_out" else ())
-        for k, img in imgs.items():
-            # published figures are on the stored (sRGB) images; the other space is named
-            sc = _scores(encode(ref, enc), encode(img, enc), mask, cfg.flip)
-            sc[f"psnr_{other}"] = _psnr_in(other, ref, img)
-            rows[k].append(sc)
-            entry[k] = sc
+        to_score.append((ref, imgs, mask, enc, cfg.flip))
         per_view.append(entry)
         err = np.repeat(np.clip(np.abs(ours - ref).mean(2, keepdims=True) * 4, 0, 1), 3, 2)
         panel = [ours, ref, imgs.get("single", np.zeros_like(ours)), err]
@@ -309,6 +327,10 @@ def run(ctx: StageContext) -> None:
                     np.concatenate([to_display(p) for p in panel], 1))  # display sRGB
     if oracle is not None:
         oracle.release()
+    for entry, scores in zip(per_view, _score_views(ctx, to_score)):
+        for k, sc in scores.items():
+            rows[k].append(sc)
+            entry[k] = sc
     methods = {k: mean_metrics(v) for k, v in rows.items() if v}
     summary = {k: v for k, v in methods["ours"].items()}
     for k in ("single", "oracle", "naive", "nearest"):
@@ -381,7 +403,7 @@ def _oracle_model(ctx: StageContext):
     # not normalised: without depth frames the poses stage rescales even given poses)
     if not (root / "cameras.json").is_file() or not scene_is_input_frame(ctx):
         return None
-    return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer)
+    return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer, jobs=ctx.jobs)
 
 
 def _chart(path: Path, methods: dict) -> None:

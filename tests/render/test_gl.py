@@ -102,3 +102,26 @@ def test_two_layers_beat_single_layer_in_the_mirror(sample_scene):
     assert p2 > p1 + 3.0
     two.release()
     one.release()
+
+
+def test_oracle_views_built_in_workers_match_in_process(tiny):
+    """GroundTruth.model(jobs=2) builds each view in a worker process: the same meshes, textures
+    and alphas, in the same order, as the in-process build."""
+    root, gt, model, _ = tiny
+    names = list(gt.cameras)[:3]
+    one = gt.model(layers=True, names=names)
+    two = gt.model(layers=True, names=names, jobs=2)
+    assert [v.name for v in two.views] == [v.name for v in one.views] == names
+    for a, b in zip(one.views, two.views):
+        assert len(a.layers) == len(b.layers)
+        for la, lb in zip(a.layers, b.layers):
+            assert (la is None) == (lb is None)
+            if la is None:
+                continue
+            np.testing.assert_array_equal(la.vertices, lb.vertices)
+            np.testing.assert_array_equal(la.faces, lb.faces)
+            np.testing.assert_array_equal(la.rgb, lb.rgb)
+            np.testing.assert_array_equal(la.beta, lb.beta)
+            np.testing.assert_array_equal(la.alpha, lb.alpha)
+    one.release()
+    two.release()

@@ -45,6 +45,22 @@ def test_render_views_and_evaluate_through_cli(gt_ws, tiny_scene):
     assert main(["-q", "render_views", str(gt_ws), "--no-progress"]) == 0
 
 
+def test_evaluate_in_workers_gives_the_same_figures(gt_ws):
+    """--jobs 2 scores the held-out views and builds the oracle in worker processes: every figure
+    of metrics.json but the naive warp's frame time is that of the in-process run."""
+    def figures(m):
+        m = dict(m)
+        m["summary"] = {k: v for k, v in m["summary"].items() if k != "naive_ms"}
+        return m
+    assert main(["-q", "render_views", str(gt_ws), "--no-progress"]) == 0
+    assert main(["-q", "evaluate", str(gt_ws), "--no-progress", "--force"]) == 0
+    one = json.loads((gt_ws / "eval" / "metrics.json").read_text())
+    assert main(["-q", "evaluate", str(gt_ws), "--no-progress", "--force", "--jobs", "2"]) == 0
+    two = json.loads((gt_ws / "eval" / "metrics.json").read_text())
+    assert len(one["per_view"]) == 2 and "oracle" in one["methods"] and "flip_mask" in one["methods"]["ours"]
+    assert figures(two) == figures(one)
+
+
 def test_ibr_render_command(gt_ws, tmp_path, capsys):
     out = tmp_path / "fly"
     assert main(["render", str(gt_ws), "--path", "fly", "--out", str(out), "--no-progress"]) == 0
