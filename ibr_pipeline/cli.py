@@ -50,7 +50,8 @@ def _add_exec_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dry-run", action="store_true", help="say what would run and why; run nothing")
     p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
                    help="worker processes for per-view stages and for the independent pieces of "
-                        "whole-scene ones (MVS views, reflector candidates, the held-out scores); default 1: this process")
+                        "whole-scene ones (MVS views, reflector candidates, the held-out scores); "
+                        "default 1: this process")
     p.add_argument("--dask-scheduler", metavar="ADDR",
                    help="run per-view tasks on a Dask cluster, e.g. tcp://10.0.0.5:8786 "
                         "(workers need the workspace at the same path)")
