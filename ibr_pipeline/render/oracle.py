@@ -177,21 +177,20 @@ class GroundTruth:
         return ViewData(name, cam, (LayerData(v0, f0, i0, alpha0, beta), LayerData(v1, f1, i1, alpha1)))
 
     def model(self, layers: bool = True, step: int = GRID_STEP, settings: RenderSettings | None = None,
-              names=None, progress: bool = False, jobs: int = 1):
-        """The IBRModel of the GT-built views; `jobs` worker processes build the views (each its
-        own GroundTruth: the mirrored ray-casting scenes do not pickle), in view order."""
+              names=None, progress: bool = False, map_fn=None):
+        """The IBRModel of the GT-built views, in view order. map_fn(fn, argsets) -> iterator of
+        (index, fn(*argsets[index])) in any order builds them elsewhere (worker processes: each
+        its own GroundTruth, the mirrored ray-casting scenes do not pickle); None: here."""
         from tqdm import tqdm
 
-        from ..executors import LocalExecutor
         from .ibr import IBRModel
         names = list(self.cameras) if names is None else list(names)
         views = [None] * len(names)
-        with LocalExecutor(max(1, min(jobs, len(names)))) as ex, \
-                tqdm(total=len(names), desc="oracle views", disable=not progress, leave=False) as bar:
-            if ex.jobs == 1:
+        with tqdm(total=len(names), desc="oracle views", disable=not progress, leave=False) as bar:
+            if map_fn is None:
                 done = ((i, self.view(n, layers, step, settings)) for i, n in enumerate(names))
             else:
-                done = ex.results(_view_task, [(self.root, n, layers, step, settings) for n in names])
+                done = map_fn(_view_task, [(self.root, n, layers, step, settings) for n in names])
             for i, v in done:
                 views[i] = v
                 bar.update(1)

@@ -403,7 +403,10 @@ def _oracle_model(ctx: StageContext):
     # not normalised: without depth frames the poses stage rescales even given poses)
     if not (root / "cameras.json").is_file() or not scene_is_input_frame(ctx):
         return None
-    return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer, jobs=ctx.jobs)
+    from ..executors import LocalExecutor
+    with LocalExecutor(max(1, ctx.jobs)) as ex:
+        return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer,
+                                       map_fn=None if ex.jobs == 1 else ex.results)
 
 
 def _chart(path: Path, methods: dict) -> None:
