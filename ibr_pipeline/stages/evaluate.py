@@ -223,22 +223,21 @@ def _score_view(ref, imgs: dict, mask, enc: str, with_flip: bool) -> dict:
     figures are on the stored, usually sRGB, images), and PSNR in the other space, named."""
     from ..io.images import encode
     other = "linear" if enc == "srgb" else "srgb"
+    ref_enc = encode(ref, enc)
     out = {}
     for k, img in imgs.items():
-        sc = _scores(encode(ref, enc), encode(img, enc), mask, with_flip)
+        sc = _scores(ref_enc, encode(img, enc), mask, with_flip)
         sc[f"psnr_{other}"] = _psnr_in(other, ref, img)
         out[k] = sc
     return out
 
 
-def _score_views(ctx: StageContext, argsets: list) -> list[dict]:
-    """_score_view over the test cameras, in their order: ctx.jobs worker processes (FLIP and
-    SSIM are most of the stage's time on a full-size scene), in this process when jobs = 1."""
-    from ..executors import LocalExecutor
+def _score_views(ex, argsets: list) -> list[dict]:
+    """_score_view over the test cameras, in their order, on the executor `ex` (FLIP and SSIM
+    are most of the stage's time on a full-size scene)."""
     out = [None] * len(argsets)
-    with LocalExecutor(max(1, min(ctx.jobs, len(argsets)))) as ex:
-        for i, res in ex.results(_score_view, argsets):
-            out[i] = res
+    for i, res in ex.results(_score_view, argsets):
+        out[i] = res
     return out
 
 
@@ -278,6 +277,14 @@ def temporal(frames: list, gt: list | None) -> dict:
 
 
 def run(ctx: StageContext) -> None:
+    """The stage, with one pool of ctx.jobs workers (in this process when 1) shared by the
+    oracle's view construction and the scoring, so workers start once."""
+    from ..executors import LocalExecutor
+    with LocalExecutor(max(1, ctx.jobs)) as ex:
+        _run(ctx, ex)
+
+
+def _run(ctx: StageContext, ex) -> None:
     import numpy as np
 
     from ..io.images import read_image, write_image
@@ -290,7 +297,7 @@ def run(ctx: StageContext) -> None:
         raise InputError(f"{ws.path(L.render_file('test', 'cameras.json'))}: no test renders (run render_views)")
     source = _source(ctx, "test")
     single = _set_cameras(ctx, "test_single")
-    oracle = _oracle_model(ctx) if cfg.oracle and source in ("heldout", "leave_one_out") else None
+    oracle = _oracle_model(ctx, ex) if cfg.oracle and source in ("heldout", "leave_one_out") else None
     naive = _naive_model(ctx) if cfg.naive else None
     naive_ms = []
     rows = {"ours": [], "single": [], "oracle": [], "naive": [], "nearest": []}
@@ -327,7 +334,7 @@ def run(ctx: StageContext) -> None:
                     np.concatenate([to_display(p) for p in panel], 1))  # display sRGB
     if oracle is not None:
         oracle.release()
-    for entry, scores in zip(per_view, _score_views(ctx, to_score)):
+    for entry, scores in zip(per_view, _score_views(ex, to_score)):
         for k, sc in scores.items():
             rows[k].append(sc)
             entry[k] = sc
@@ -394,7 +401,7 @@ def _naive_model(ctx: StageContext):
     return from_workspace(ctx.ws, lam=_render_config(ctx).renderer.lam)
 
 
-def _oracle_model(ctx: StageContext):
+def _oracle_model(ctx: StageContext, ex):
     from ..render.oracle import GroundTruth
     root = ctx.ws.input_root
     if not (root / "gt" / "geom").is_dir() or not (root / "gt" / "mesh.ply").is_file():
@@ -403,10 +410,8 @@ def _oracle_model(ctx: StageContext):
     # not normalised: without depth frames the poses stage rescales even given poses)
     if not (root / "cameras.json").is_file() or not scene_is_input_frame(ctx):
         return None
-    from ..executors import LocalExecutor
-    with LocalExecutor(max(1, ctx.jobs)) as ex:
-        return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer,
-                                       map_fn=None if ex.jobs == 1 else ex.results)
+    return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer,
+                                   map_fn=None if ex.jobs == 1 else ex.results)
 
 
 def _chart(path: Path, methods: dict) -> None:
