@@ -216,6 +216,29 @@ def membrane_fill(values: np.ndarray, unknown: np.ndarray, weights: tuple[np.nda
     return out, solve
 
 
+def mvs_in_front(g_depth: np.ndarray, mvs_depth: np.ndarray, rel: float, min_px: int,
+                 speckle_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(depth (H, W) float64, front (H, W) bool): G's depth with the view's own MVS depth taken
+    where it lies in front of G's by more than `rel` (relative), in 4-connected regions of at
+    least `min_px` such pixels (`front`). A surface the view sees
+    in front of G is one the fusion missed (seen by too few views, at the capture's border);
+    a wrong match behind G (a reflection's virtual depth, a textureless wall) is never taken.
+    `mvs_depth` as in `complete_depth` (resized, speckles dropped first)."""
+    import cv2
+    g = np.asarray(g_depth, np.float64)
+    if g.ndim != 2:
+        raise ValueError(f"g_depth must be (H, W), got {g.shape}")
+    h, w = g.shape
+    m = _resize_nearest(np.asarray(mvs_depth, np.float64), w, h)
+    if speckle_px > 0:
+        m = remove_speckles(m, speckle_px)
+    front = np.isfinite(m) & (m > 0) & np.isfinite(g) & (g > 0) & (m < g * (1.0 - rel))
+    if min_px > 1 and front.any():
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(front.astype(np.uint8), connectivity=4)
+        front = np.isin(lab, 1 + np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_px)) & front
+    return np.where(front, m, np.where(np.isfinite(g) & (g > 0), g, 0.0)), front
+
+
 def remove_speckles(depth: np.ndarray, max_px: int, rel: float = 0.02) -> np.ndarray:
     """depth (H, W) with its speckles zeroed: connected regions of at most `max_px` pixels whose
     neighbours differ by at most `rel` in relative depth (OpenCV's filterSpeckles, the stereo

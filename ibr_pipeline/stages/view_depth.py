@@ -96,6 +96,11 @@ class ViewDepthConfig(StageConfig):
     mvs_speckle_px: int = param(20, "completion: drop MVS depth regions of at most this many "
                                 "pixels (at 320x240) that no neighbour continues; 0 = off",
                                 min=0, max=100000)
+    mvs_front_rel: float = param(0.1, "take the view's own MVS depth (global/mvs) where it lies in "
+                                 "front of G's by more than this fraction: a surface the fusion "
+                                 "missed (docs/VIEW_DEPTH.md); 0 = off", min=0.0, max=0.9)
+    mvs_front_px: int = param(200, "mvs_front_rel: smallest region taken (pixels at 320x240)",
+                              min=1, max=1000000)
     strokes_dir: str = param("strokes", "input sub-folder with optional occlusion-edge strokes "
                              "(<image stem>.png, white = edge)")
     device: str = param("cpu", "torch device for the plane sweep", choices=("cpu", "cuda"),
@@ -267,13 +272,23 @@ def _run(ctx: StageContext, view: str) -> None:
     timings = {}
     # 1. initial depth: G ray cast into the view (Xu §4.2)
     t = time.perf_counter()
-    depth0 = _g_depth(g_key, scene, cam)
+    g_init = depth0 = _g_depth(g_key, scene, cam)
     timings["render_ms"] = 1000 * (time.perf_counter() - t)
+    px = pixel_scale(cam.width)
+    # 1b. (ours, RGB-only captures) the view's own MVS depth where it lies well in front of G: a
+    # surface the fusion missed (docs/VIEW_DEPTH.md step 1b); G's depth stays in depth_init.npy
+    front = np.zeros(depth0.shape, bool)
+    if cfg.mvs_front_rel > 0 and ws.exists(L.mvs_depth_file(view)):
+        from ..geometry.depth_complete import mvs_in_front
+        mvs_d = np.load(ws.path(L.mvs_depth_file(view)))
+        if mvs_d.any():
+            depth0, front = mvs_in_front(depth0, mvs_d, cfg.mvs_front_rel,
+                                         int(cfg.mvs_front_px * px * px),
+                                         int(cfg.mvs_speckle_px * px * px))
     # pixel-valued parameters of our additions (rounded-step strides, MVS edge guard and check
     # radius) were tuned at 320x240: scaled with the width so that they cover the same image
     # fraction at other sizes (at 640x480 the 2 cm TSDF ramps span twice as many pixels); the
     # rounded-step strides follow the ramps themselves: width x G's voxel size (ramp_scale)
-    px = pixel_scale(cam.width)
     g_voxel = _g_voxel(ws)
     rs, rr = ramp_scale(cam.width, g_voxel), ramp_ratio(cam.width, g_voxel)
     # 2. Eq. 1 depth edges and the 4 cm refinement mask (§4.2.1)
@@ -366,7 +381,7 @@ def _run(ctx: StageContext, view: str) -> None:
     normal_w = world_normals(final.normals, cam).astype(np.float32)   # = normals_from_depth(depth2)
     vd = ws.view_dir(view)
     with ws.atomic_write(f"{vd}/{L.DEPTH_INIT}") as f:
-        np.save(f, depth0.astype(np.float32))
+        np.save(f, g_init.astype(np.float32))
     with ws.atomic_write(f"{vd}/{L.DEPTH}") as f:
         np.save(f, depth2.astype(np.float32))
     with ws.atomic_write(f"{vd}/{L.NORMAL}") as f:
@@ -379,6 +394,7 @@ def _run(ctx: StageContext, view: str) -> None:
         "ramp_scale": rs,
         "edge_pixels_init": int(det.edge_pixels.sum()), "edge_pixels": int(final.edge_pixels.sum()),
         "mask_pixels": int(mask.sum()), "rounded_step_pixels": int(rounded.sum()), "mvs_accepted": int(accepted.sum()),
+        "mvs_in_front": int(front.sum()),
         "interpolated": int(filled.sum()),
         "refined_fraction": float((accepted.sum() + filled.sum()) / max(int(mask.sum()), 1)),
         "valid_fraction": float((depth2 > 0).mean()), "empty_in_g": empty_before,
@@ -388,6 +404,6 @@ def _run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="view_depth", help="depth edges (Eq. 1) and masked geodesic depth refinement per view",
-              config=ViewDepthConfig, version="9", run=run, per_view=True,
+              config=ViewDepthConfig, version="10", run=run, per_view=True,
               inputs=(L.REGISTERED_CAMERAS, L.GLOBAL_MESH), view_inputs=view_inputs,
               view_outputs=tuple("{view_dir}/" + o for o in OUTPUTS), views=registered_views)
