@@ -1,4 +1,5 @@
-"""Stage `view_depth` (Xu et al. §4.2.1-4.2.2), per view: render the global mesh G into the view,
+"""Stage `view_depth` (Xu et al. §4.2.1-4.2.2), per view: render the global mesh G into the view
+(taking the view's own MVS depth where it lies well in front of G: a surface the fusion missed),
 detect depth edges (Eq. 1), build the 4 cm refinement mask, refine inside it (masked multi-view
 stereo, then Eq. 2 geodesic interpolation over a colour-edge cost map), complete what G leaves
 empty (the view's MVS depth, then edge-aware interpolation), write depth/normals/edges.
