@@ -73,6 +73,9 @@ def _coverage(ws: Path) -> dict:
         return {"mvs_valid_fraction": g.get("mvs_valid_fraction")}
     return {"mvs_valid_fraction": g.get("mvs_valid_fraction"),
             "g_empty_fraction": float(np.mean([r.get("empty_in_g", 0.0) for r in reps])),
+            # view_depth step 1b: what the view took from its own MVS depth in front of G
+            "mvs_in_front_fraction": float(np.mean([r.get("mvs_in_front", 0) / np.prod(r["size"])
+                                                    for r in reps])),
             "depth_valid_fraction": float(np.mean([r["valid_fraction"] for r in reps])),
             "depth_valid_min": float(np.min([r["valid_fraction"] for r in reps]))}
 
@@ -154,7 +157,8 @@ def main(args: argparse.Namespace) -> int:
               f"({p['source']})")
     cov = result["coverage"]
     print(f"  holes {100 * (result['holes'] or 0):.1f} %, global mesh empty in "
-          f"{100 * cov.get('g_empty_fraction', 0):.1f} % of each view, depth on "
+          f"{100 * cov.get('g_empty_fraction', 0):.1f} % of each view (MVS in front of it on "
+          f"{100 * cov.get('mvs_in_front_fraction', 0):.1f} %), depth on "
           f"{100 * cov.get('depth_valid_fraction', 0):.1f} % after completion")
     print("  seconds: " + ", ".join(f"{k} {v:.0f}" for k, v in result["stage_seconds"].items())
           + f"; end to end {wall:.0f} s (this run)")
