@@ -220,9 +220,9 @@ def mvs_in_front(g_depth: np.ndarray, mvs_depth: np.ndarray, rel: float, min_px:
                  speckle_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(depth (H, W) float64, front (H, W) bool): G's depth with the view's own MVS depth taken
     where it lies in front of G's by more than `rel` (relative), in 4-connected regions of at
-    least `min_px` such pixels (`front`). A surface the view sees
-    in front of G is one the fusion missed (seen by too few views, at the capture's border);
-    a wrong match behind G (a reflection's virtual depth, a textureless wall) is never taken.
+    least `min_px` such pixels (`front`). A surface the view sees in front of G hides G's there,
+    so G lacks it: the fusion did not confirm it (too few views, at the capture's border). A
+    wrong match behind G (a reflection's virtual depth, a textureless wall) is never taken.
     `mvs_depth` as in `complete_depth` (resized, speckles dropped first)."""
     import cv2
     g = np.asarray(g_depth, np.float64)
