@@ -54,9 +54,7 @@ def complete_depth(depth: np.ndarray, camera: Camera, image: np.ndarray, mvs_dep
     out = np.where(np.isfinite(d) & (d > 0), d, 0.0)
     from_mvs = np.zeros((h, w), bool)
     if mvs_depth is not None:
-        m = _resize_nearest(np.asarray(mvs_depth, np.float64), w, h)
-        if speckle_px > 0:
-            m = remove_speckles(m, speckle_px)
+        m = view_mvs(mvs_depth, w, h, speckle_px)
         from_mvs = (out <= 0) & np.isfinite(m) & (m > 0)
         out[from_mvs] = m[from_mvs]
     from_planes = np.zeros((h, w), bool)
@@ -216,22 +214,27 @@ def membrane_fill(values: np.ndarray, unknown: np.ndarray, weights: tuple[np.nda
     return out, solve
 
 
-def mvs_in_front(g_depth: np.ndarray, mvs_depth: np.ndarray, rel: float, min_px: int,
-                 speckle_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def view_mvs(mvs_depth: np.ndarray, w: int, h: int, speckle_px: int = 0) -> np.ndarray:
+    """An MVS depth map (any size of the view's aspect, 0 = none) on the view's w x h pixels
+    (nearest-neighbour), its speckles (`remove_speckles`, at most `speckle_px`) dropped."""
+    m = _resize_nearest(np.asarray(mvs_depth, np.float64), w, h)
+    return remove_speckles(m, speckle_px) if speckle_px > 0 else m
+
+
+def mvs_in_front(g_depth: np.ndarray, mvs_depth: np.ndarray, rel: float, min_px: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """(depth (H, W) float64, front (H, W) bool): G's depth with the view's own MVS depth taken
     where it lies in front of G's by more than `rel` (relative), in 4-connected regions of at
     least `min_px` such pixels (`front`). A surface the view sees in front of G hides G's there,
     so G lacks it: the fusion did not confirm it (too few views, at the capture's border). A
     wrong match behind G (a reflection's virtual depth, a textureless wall) is never taken.
-    `mvs_depth` as in `complete_depth` (resized, speckles dropped first)."""
+    `mvs_depth` as in `complete_depth` (resized; `view_mvs` drops its speckles)."""
     import cv2
     g = np.asarray(g_depth, np.float64)
     if g.ndim != 2:
         raise ValueError(f"g_depth must be (H, W), got {g.shape}")
     h, w = g.shape
     m = _resize_nearest(np.asarray(mvs_depth, np.float64), w, h)
-    if speckle_px > 0:
-        m = remove_speckles(m, speckle_px)
     front = np.isfinite(m) & (m > 0) & np.isfinite(g) & (g > 0) & (m < g * (1.0 - rel))
     if min_px > 1 and front.any():
         n, lab, stats, _ = cv2.connectedComponentsWithStats(front.astype(np.uint8), connectivity=4)

@@ -276,16 +276,20 @@ def _run(ctx: StageContext, view: str) -> None:
     g_init = depth0 = _g_depth(g_key, scene, cam)
     timings["render_ms"] = 1000 * (time.perf_counter() - t)
     px = pixel_scale(cam.width)
+    # the view's MVS depth (RGB-only captures), read once for steps 1b and 5: on the view's
+    # pixels, speckles dropped (None: no MVS map, i.e. G came from depth frames)
+    mvs_v = None
+    if (cfg.mvs_front_rel > 0 or cfg.complete) and ws.exists(L.mvs_depth_file(view)):
+        from ..geometry.depth_complete import view_mvs
+        raw = np.load(ws.path(L.mvs_depth_file(view)))
+        if raw.any():
+            mvs_v = view_mvs(raw, cam.width, cam.height, cfg.mvs_speckle_px * px * px)
     # 1b. (ours, RGB-only captures) the view's own MVS depth where it lies well in front of G: a
     # surface the fusion missed (docs/VIEW_DEPTH.md step 1b); G's depth stays in depth_init.npy
     front = np.zeros(depth0.shape, bool)
-    if cfg.mvs_front_rel > 0 and ws.exists(L.mvs_depth_file(view)):
+    if cfg.mvs_front_rel > 0 and mvs_v is not None:
         from ..geometry.depth_complete import mvs_in_front
-        mvs_d = np.load(ws.path(L.mvs_depth_file(view)))
-        if mvs_d.any():
-            depth0, front = mvs_in_front(depth0, mvs_d, cfg.mvs_front_rel,
-                                         int(cfg.mvs_front_px * px * px),
-                                         int(cfg.mvs_speckle_px * px * px))
+        depth0, front = mvs_in_front(depth0, mvs_v, cfg.mvs_front_rel, int(cfg.mvs_front_px * px * px))
     # pixel-valued parameters of our additions (rounded-step strides, MVS edge guard and check
     # radius) were tuned at 320x240: scaled with the width so that they cover the same image
     # fraction at other sizes (at 640x480 the 2 cm TSDF ramps span twice as many pixels); the
@@ -363,17 +367,12 @@ def _run(ctx: StageContext, view: str) -> None:
     empty_before = float((depth2 <= 0).mean())
     if cfg.complete and (depth2 <= 0).any():
         from ..geometry.depth_complete import complete_depth
-        mvs_d = None
-        if ws.exists(L.mvs_depth_file(view)):
-            mvs_d = np.load(ws.path(L.mvs_depth_file(view)))
-            mvs_d = mvs_d if mvs_d.any() else None
         # segment planes where G came from our MVS (RGB-only captures: the textureless regions
         # PatchMatch leaves empty); over an RGB-D G's holes they added false cuts at segment
         # borders (docs/VIEW_DEPTH.md)
-        planes = cfg.planes.scaled(px * px) if cfg.complete_planes and mvs_d is not None else None
-        depth2, which = complete_depth(depth2, cam, image, mvs_d, cfg.cost_edge,
-                                       px * cfg.edge_boundary_radius, strokes, planes,
-                                       cfg.mvs_speckle_px * px * px)
+        planes = cfg.planes.scaled(px * px) if cfg.complete_planes and mvs_v is not None else None
+        depth2, which = complete_depth(depth2, cam, image, mvs_v, cfg.cost_edge,
+                                       px * cfg.edge_boundary_radius, strokes, planes)
         completed = {k: int(v.sum()) for k, v in which.items()}
     timings["complete_ms"] = 1000 * (time.perf_counter() - t)
     if not np.all(np.isfinite(depth2)):

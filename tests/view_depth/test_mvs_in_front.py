@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ibr_pipeline import layout as L
-from ibr_pipeline.geometry.depth_complete import mvs_in_front
+from ibr_pipeline.geometry.depth_complete import mvs_in_front, view_mvs
 
 H, W = 60, 80
 
@@ -36,7 +36,7 @@ def test_small_regions_and_speckles_are_not_taken():
     g, m = _maps()
     _, front = mvs_in_front(g, m, rel=0.1, min_px=1)
     assert front[45:48, 20:23].all()                     # no size rule: the speck counts
-    _, front = mvs_in_front(g, m, rel=0.1, min_px=1, speckle_px=20)
+    _, front = mvs_in_front(g, view_mvs(m, W, H, speckle_px=20), rel=0.1, min_px=1)
     assert not front[45:48, 20:23].any()                 # dropped as a speckle first
     _, front = mvs_in_front(g, m, rel=0.01, min_px=50)
     assert front[4:8, 60:75].all()                       # within rel of G decides
