@@ -72,18 +72,27 @@ class RenderSettings(Options):
                             choices=("auto", "fuzzy", "per_view"))
     per_view_max: int = param(4, "per_view: blend at most this many views, smallest d_k first",
                               min=1, max=72)
+    blend_space: str = param("stored", "stored = blend the views' colours (and fill holes) in the "
+                             "encoding their files hold, sRGB for photographs, and decode to "
+                             "linear before Eq. 3 (ours: Xu et al. do not say; as 8-bit photo "
+                             "textures are sampled by default on a GPU); linear = decode every "
+                             "texture first "
+                             "(docs/RENDERING.md \"Blending space\")",
+                             choices=("stored", "linear"))
 
 
 @dataclass
 class LayerData:
     """One layer of one view: a world-space mesh, its texture (H, W, 3) and texture weight (H, W);
-    beta (H, W) for the surface layer (None = 0)."""
+    beta (H, W) for the surface layer (None = 0); `encoding` is the one `rgb` holds its values in
+    (io.images.decode gives linear)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     rgb: np.ndarray
     alpha: np.ndarray
     beta: np.ndarray | None = None
+    encoding: str = "linear"
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float32)
@@ -97,6 +106,8 @@ class LayerData:
             raise ValueError(f"rgb must be (H, W, 3) = {(h, w, 3)}, got {np.shape(self.rgb)}")
         if self.beta is not None and np.shape(self.beta) != (h, w):
             raise ValueError(f"beta must be (H, W) = {(h, w)}, got {np.shape(self.beta)}")
+        if self.encoding not in ("linear", "srgb"):
+            raise ValueError(f"encoding must be 'linear' or 'srgb', got {self.encoding!r}")
 
 
 @dataclass
@@ -135,6 +146,11 @@ class IBRModel:
         self.centers = np.array([v.camera.center for v in self.views])
         self.axes = np.array([v.camera.viewing_direction for v in self.views])
         self.has_layer1 = any(v.layers[1] is not None for v in self.views)
+        encodings = {lay.encoding for v in self.views for lay in v.layers if lay is not None}
+        if len(encodings) != 1:
+            raise ValueError(f"IBR model: the layers' textures mix encodings {sorted(encodings)}")
+        # blended (and hole-filled) in this encoding, decoded to linear before Eq. 3
+        self.texture_encoding = encodings.pop()
         self._gpu: dict = {}
         self._targets: dict = {}
         self._progs = None
@@ -351,7 +367,7 @@ class IBRModel:
                 full[y:y + bh, x:x + bw], cov_full[y:y + bh, x:x + bw] = i1, cov1
                 i1, box = post_nb.fill_holes(full, cov_full, s.hole_decay_px), (0, 0, W, H)
             i1_box = i1
-        color, beta = post_nb.finish(color4, i1_box, box)
+        color, beta = post_nb.finish(color4, i1_box, box, srgb=self.texture_encoding == "srgb")
         t3 = time.perf_counter()
         return Frame(color, depth,
                      [self.names[k] for k in sel], (t3 - t0) * 1e3, camera, covered, beta,
@@ -359,8 +375,9 @@ class IBRModel:
                       "post_ms": (t3 - t2) * 1e3})
 
     def render_single_view(self, camera: Camera, k: int, layer: int = 0) -> dict:
-        """Reference pass: view k alone with an ordinary depth test. Returns rgb, alpha, z, cost,
-        beta (H, W[, 3]) and covered (H, W) — the inputs of the numpy blend in `blend.py`."""
+        """Reference pass: view k alone with an ordinary depth test. Returns rgb (in the textures'
+        encoding), alpha, z, cost, beta (H, W[, 3]) and covered (H, W) — the inputs of the numpy
+        blend in `blend.py`."""
         import moderngl
 
         from . import gl
@@ -438,15 +455,19 @@ def mask_boundary(mask: np.ndarray) -> np.ndarray:
 def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
               s: RenderSettings, encoding: str = "linear") -> ViewData:
     """One view's LayerData from the files of docs/PIPELINE.md (view_mesh + reflection); colour
-    files stored in `encoding` (the scene's) are decoded to linear for blending."""
+    files stored in `encoding` (the scene's) keep it with `s.blend_space` stored and are decoded
+    to linear with `linear`."""
     from ..io.images import read_image
     from ..io.mesh import read_ply
 
     vdir = ws.view_dir(name)
     H, W = camera.height, camera.width
 
+    stored = s.blend_space == "stored"
+    tex_encoding = encoding if stored else "linear"
+
     def img(key):
-        a = read_image(ws.path(key), encoding)
+        a = read_image(ws.path(key), "linear" if stored else encoding)  # "linear": as stored
         if a.shape[:2] != (H, W):
             raise InputError(f"{ws.path(key)}: image is {a.shape[1]}x{a.shape[0]}, camera says {W}x{H}")
         return a
@@ -473,11 +494,12 @@ def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
         if beta.shape != (H, W) or not np.all(np.isfinite(beta)):
             raise InputError(f"{bpath}: beta must be finite with shape {(H, W)}, got {beta.shape}")
         beta = np.clip(beta, 0.0, 1.0)
-        l0 = LayerData(m0.vertices, m0.faces, img(f"{vdir}/{L.I0}"), alpha0, beta)
+        l0 = LayerData(m0.vertices, m0.faces, img(f"{vdir}/{L.I0}"), alpha0, beta, tex_encoding)
         # the reflection layer always decays at the border of its beta > 0 region
         e1 = mask_boundary(beta > 0) | (edges if decay else np.zeros_like(edges))
         alpha1 = blend.texture_alpha(e1, s.feather_px, s.edge_decay_px)
-        l1 = LayerData(m1.vertices, m1.faces, img(f"{vdir}/{L.I1}"), alpha1)
+        l1 = LayerData(m1.vertices, m1.faces, img(f"{vdir}/{L.I1}"), alpha1, encoding=tex_encoding)
         return ViewData(name, camera, (l0, l1))
     m = read_ply(ws.path(f"{vdir}/{L.MESH}"))
-    return ViewData(name, camera, (LayerData(m.vertices, m.faces, img(image_key), alpha0), None))
+    return ViewData(name, camera, (LayerData(m.vertices, m.faces, img(image_key), alpha0,
+                                             encoding=tex_encoding), None))

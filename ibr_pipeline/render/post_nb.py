@@ -159,9 +159,39 @@ def fill_holes(color: np.ndarray, covered: np.ndarray, decay_px: float) -> np.nd
     return out
 
 
+SRGB_LUT_SEGMENTS = 4096
+
+
+def srgb_lut() -> np.ndarray:
+    """sRGB decoding sampled at SRGB_LUT_SEGMENTS + 1 points of [0, 1]: linear interpolation in
+    it is within 1e-6 of io.images.srgb_to_linear, at a table read instead of a pow per value."""
+    global _SRGB_LUT
+    if _SRGB_LUT is None:
+        from ..io.images import srgb_to_linear
+        _SRGB_LUT = np.ascontiguousarray(
+            srgb_to_linear(np.linspace(0.0, 1.0, SRGB_LUT_SEGMENTS + 1)), np.float32)
+    return _SRGB_LUT
+
+
+_SRGB_LUT = None
+_NO_LUT = np.zeros(0, np.float32)
+
+
 @njit(cache=True)
-def _finish(color4, i1, bx, by, out, beta):
-    """beta = clip(color4.a, 0, 1); out = max(color4.rgb + beta·I1 (inside the box), 0)."""
+def _decoded(v, lut):
+    """v itself (empty lut) or its sRGB decoding through `lut`, v clipped to [0, 1]."""
+    n = lut.shape[0] - 1
+    if n < 1:
+        return v
+    f = min(max(v, np.float32(0.0)), np.float32(1.0)) * np.float32(n)
+    i = min(int(f), n - 1)
+    return lut[i] + (lut[i + 1] - lut[i]) * (f - np.float32(i))
+
+
+@njit(cache=True)
+def _finish(color4, i1, bx, by, out, beta, lut):
+    """beta = clip(color4.a, 0, 1); out = max(dec(color4.rgb) + beta·dec(I1) (inside the box), 0),
+    dec = the sRGB decoding through `lut` (identity when it is empty)."""
     H, W = beta.shape
     bh, bw = i1.shape[0], i1.shape[1]
     for y in range(H):
@@ -170,15 +200,16 @@ def _finish(color4, i1, bx, by, out, beta):
             beta[y, x] = b
             inside = 0 <= y - by < bh and 0 <= x - bx < bw
             for c in range(3):
-                v = color4[y, x, c]
+                v = _decoded(color4[y, x, c], lut)
                 if inside:
-                    v = v + b * i1[y - by, x - bx, c]
+                    v = v + b * _decoded(i1[y - by, x - bx, c], lut)
                 out[y, x, c] = max(v, np.float32(0.0))
 
 
-def finish(color4: np.ndarray, i1: np.ndarray | None = None, box=None):
+def finish(color4: np.ndarray, i1: np.ndarray | None = None, box=None, srgb: bool = False):
     """Eq. 3 on the filled surface layer: (colour (H, W, 3) clipped at 0, beta (H, W) in [0, 1]);
-    `i1` (h, w, 3) is the reflection layer inside `box` (x, y, w, h), 0 elsewhere."""
+    `i1` (h, w, 3) is the reflection layer inside `box` (x, y, w, h), 0 elsewhere. With `srgb`
+    both layers were blended as sRGB values and are decoded to linear first (Eq. 3 adds light)."""
     color4 = np.ascontiguousarray(color4, np.float32)
     H, W = color4.shape[:2]
     if i1 is None:
@@ -188,6 +219,6 @@ def finish(color4: np.ndarray, i1: np.ndarray | None = None, box=None):
         raise ValueError(f"I1 {np.shape(i1)} does not fit box {box} in a {W}x{H} frame")
     out = np.empty((H, W, 3), np.float32)
     beta = np.empty((H, W), np.float32)
-    _finish(color4, np.ascontiguousarray(i1, np.float32), int(x), int(y), out, beta)
+    _finish(color4, np.ascontiguousarray(i1, np.float32), int(x), int(y), out, beta,
+            srgb_lut() if srgb else _NO_LUT)
     return out, beta
-

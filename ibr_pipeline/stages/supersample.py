@@ -221,5 +221,5 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(name="supersample", help="train DSRNet (Xu §5.2) on leave-one-out renders",
-              config=SupersampleConfig, version="7", run=run, inputs=inputs,
+              config=SupersampleConfig, version="8", run=run, inputs=inputs,
               outputs=(L.MODEL, L.TRAIN_JSON, L.LOSS_PNG))

@@ -8,9 +8,10 @@
   held-out and fly-through cameras of `render_views`, and per view its layers;
 * per view and layer, `<key>.<layer>.pos.bin` (float32 x, y, z per vertex, little-endian) and
   `.idx.bin` (uint32 triangle indices): the world-space meshes the offline renderer draws;
-* per view and layer, `<key>.<layer>.rgb.png` (the layer image, 8-bit, in the scene's encoding:
-  sRGB photographs are uploaded as SRGB8_ALPHA8 so that the GPU decodes them to linear, as the
-  offline renderer's float textures hold them) and `<key>.<layer>.aux.png` (R = sqrt of the texture
+* per view and layer, `<key>.<layer>.rgb.png` (the layer image, 8-bit, in the scene's encoding;
+  the page blends it as the offline renderer does, `RenderSettings.blend_space`: sRGB values
+  as stored, decoded before Eq. 3, or uploaded as SRGB8_ALPHA8 so that the GPU decodes them
+  first) and `<key>.<layer>.aux.png` (R = sqrt of the texture
   alpha = feathering x edge decay of §5.1.4, G = beta of Eq. 3, 8-bit each; the square root keeps
   the 1e-3 weight floor above zero at 8 bits).
 
@@ -91,9 +92,12 @@ def _png(path: Path, img: np.ndarray) -> None:
         raise OSError(f"{path}: cannot write PNG")
 
 
-def _encode(rgb: np.ndarray, encoding: str) -> np.ndarray:
+def _encode(data, encoding: str) -> np.ndarray:
+    """The layer's texture in `encoding` (LayerData.rgb holds it in data.encoding)."""
     from ..io.images import linear_to_srgb
-    return linear_to_srgb(rgb) if encoding == "srgb" else rgb
+    if data.encoding == encoding:
+        return data.rgb
+    return linear_to_srgb(data.rgb) if encoding == "srgb" else data.rgb
 
 
 def _write_layer(stage: Path, key: str, layer_name: str, data) -> dict:
@@ -107,7 +111,7 @@ def _write_layer(stage: Path, key: str, layer_name: str, data) -> dict:
 
 def _write_textures(stage: Path, key: str, layer_name: str, data, encoding: str) -> dict:
     base = f"{key}.{layer_name}"
-    _png(stage / f"{base}.rgb.png", _encode(data.rgb, encoding))
+    _png(stage / f"{base}.rgb.png", _encode(data, encoding))
     beta = data.beta if data.beta is not None else np.zeros(data.alpha.shape, np.float32)
     aux = np.stack([np.sqrt(np.clip(data.alpha, 0, 1)), beta, np.zeros_like(beta)], -1)
     _png(stage / f"{base}.aux.png", aux)

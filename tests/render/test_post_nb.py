@@ -104,6 +104,28 @@ def test_finish_is_eq3_inside_the_box_and_clipped():
     np.testing.assert_array_equal(color, np.clip(color4[..., :3], 0, None))
 
 
+def test_finish_decodes_srgb_layers_before_eq3():
+    """srgb=True: both layers hold blended sRGB values; Eq. 3 adds their linear decodings."""
+    from ibr_pipeline.io.images import srgb_to_linear
+    rng = np.random.default_rng(5)
+    h, w = 19, 23
+    color4 = rng.normal(0.5, 0.4, (h, w, 4)).astype(np.float32)  # outside [0, 1] too
+    box = (2, 5, 11, 7)
+    x, y, bw, bh = box
+    i1 = rng.random((bh, bw, 3), dtype=np.float32)
+    color, beta = post_nb.finish(color4, i1, box, srgb=True)
+    full_i1 = np.zeros((h, w, 3), np.float32)
+    full_i1[y:y + bh, x:x + bw] = srgb_to_linear(i1)
+    ref = blend.compose(srgb_to_linear(color4[..., :3]), np.clip(color4[..., 3], 0, 1), full_i1)
+    np.testing.assert_array_equal(beta, np.clip(color4[..., 3], 0, 1))
+    np.testing.assert_allclose(color, ref, atol=2e-6)
+    grid = np.linspace(0, 1, 1001, dtype=np.float32)
+    dec, _ = post_nb.finish(np.stack([grid] * 4, -1)[None])
+    np.testing.assert_array_equal(dec[0, :, 0], grid)  # srgb=False: the values as they are
+    dec, _ = post_nb.finish(np.stack([grid] * 4, -1)[None], srgb=True)
+    np.testing.assert_allclose(dec[0, :, 0], srgb_to_linear(grid), atol=1e-6)
+
+
 def test_finish_rejects_a_box_outside_the_frame():
     with pytest.raises(ValueError, match="does not fit"):
         post_nb.finish(np.zeros((8, 8, 4), np.float32), np.zeros((4, 4, 3), np.float32), (6, 0, 4, 4))

@@ -5,6 +5,7 @@ render/ibr.py; the offline frame of the same camera (IBRModel, moderngl on Mesa)
 reference. Same pixels by a different rasteriser: PSNR >= 30 dB on the whole frame (holes and
 their push-pull fill included), the same selected views, Eq. 3 holding between the layer modes,
 and key frames that come back from `camera_path.json` as the cameras they were recorded at."""
+import dataclasses
 import json
 import os
 import shutil
@@ -211,3 +212,36 @@ def test_page_screenshot_shows_the_view_and_the_frame_time(layered_ws, open_view
     r, g, b = region[..., 0], region[..., 1], region[..., 2]
     frusta = (r > 200) & (g > 100) & (g < 170) & (b < 60)
     assert frusta.sum() > 10, "the selected views' frusta (orange) are drawn"
+
+
+def test_srgb_photographs_blend_as_stored_as_offline(tiny_scene, tmp_path, open_viewer):
+    """An sRGB scene: the page blends the stored sRGB values and decodes before Eq. 3, as the
+    offline renderer does (RenderSettings.blend_space = stored); linear blending differs."""
+    from scene_copies import srgb_copy
+    from ibr_pipeline.gt_workspace import write_gt_workspace
+    ws_dir = tmp_path / "ws"
+    write_gt_workspace(srgb_copy(tiny_scene[0], tmp_path / "scene"), ws_dir, "reflection",
+                       global_mesh="none")
+    ws = Workspace(ws_dir)
+    s = render_settings(ws)
+    assert ws.scene().image_encoding == "srgb" and s.blend_space == "stored"
+    out = write_bundle(ws, progress=False)
+    man = json.loads((out / "manifest.json").read_text())
+    models = {b: IBRModel.load(ws, settings=dataclasses.replace(s, blend_space=b))
+              for b in ("stored", "linear")}
+    try:
+        page = open_viewer(out).open()
+        cam = man["heldout"][0]
+        page.render(cam)
+        shot = page.canvas()
+        ref = {b: offline(m, cam)[0] for b, m in models.items()}
+        assert psnr(shot, ref["stored"]) >= PSNR_MIN
+        a, b = (ref[k].astype(np.int16) for k in ("stored", "linear"))
+        differ = np.abs(a - b).max(-1) > 2  # where the two blending spaces give other pixels
+        assert differ.mean() > 0.005
+        err = {k: np.abs(shot.astype(np.int16) - ref[k].astype(np.int16))[differ].mean()
+               for k in ref}
+        assert err["stored"] < 0.5 * err["linear"], err
+    finally:
+        for m in models.values():
+            m.release()

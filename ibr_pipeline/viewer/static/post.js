@@ -141,14 +141,20 @@ void main() {
     f_out = a >= 1.0 ? c : a * c + (1.0 - a) * bilinear(fill, floor(gl_FragCoord.xy), ratio);
 }`;
 
-// Eq. 3 composition, clamp, and display: linear -> sRGB for the canvas, rows flipped (image row 0
+// Eq. 3 composition (layers blended as stored sRGB values are decoded first: post_nb.finish),
+// clamp, and display: linear -> sRGB for the canvas, rows flipped (image row 0
 // is GL row 0 in the offline convention, the top of the canvas here)
 export const COMPOSE = HEAD + `
 uniform sampler2D layer0;  // filled (I0 rgb, beta)
 uniform sampler2D layer1;  // filled I1
 uniform int mode;          // 0 I0 + beta I1, 1 I0, 2 beta I1, 3 layer0 as it is (single layer)
 uniform bool has_layer1;
+uniform bool decode_srgb;  // the layers hold sRGB values (RenderSettings.blend_space stored)
 out vec4 f_color;
+vec3 to_linear(vec3 x) {
+    x = clamp(x, 0.0, 1.0);
+    return mix(x / 12.92, pow((x + 0.055) / 1.055, vec3(2.4)), step(vec3(0.04045), x));
+}
 vec3 to_srgb(vec3 x) {
     x = clamp(x, 0.0, 1.0);
     return mix(12.92 * x, 1.055 * pow(x, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), x));
@@ -159,6 +165,10 @@ void main() {
     vec4 l0 = texelFetch(layer0, p, 0);
     float beta = clamp(l0.a, 0.0, 1.0);
     vec3 i1 = has_layer1 ? texelFetch(layer1, p, 0).rgb : vec3(0.0);
+    if (decode_srgb) {
+        l0.rgb = to_linear(l0.rgb);
+        i1 = to_linear(i1);
+    }
     vec3 c = mode == 1 ? l0.rgb : mode == 2 ? beta * i1 : mode == 3 ? l0.rgb : l0.rgb + beta * i1;
     f_color = vec4(to_srgb(max(c, vec3(0.0))), 1.0);
 }`;

@@ -118,7 +118,7 @@ export class IBRRenderer {
         const [pos, idx, rgb, aux] = await Promise.all([
           this._fetch(spec.pos).then((r) => r.arrayBuffer()),
           this._fetch(spec.idx).then((r) => r.arrayBuffer()),
-          this._texture(spec.rgb, this.m.encoding === "srgb"),
+          this._texture(spec.rgb, this.m.encoding === "srgb" && this.m.settings.blend_space === "linear"),
           this._texture(spec.aux, false)]);
         const gl = this.gl;
         const vao = gl.createVertexArray();
@@ -402,7 +402,8 @@ export class IBRRenderer {
     }
     this._bindTex(0, t.filled[0].textures[0]); this._bindTex(1, t.filled[1].textures[0]);
     this._fullscreen(this.p.compose, null, cam.width, cam.height, { layer0: { int: 0 },
-      layer1: { int: 1 }, mode: { int: MODES[mode] ?? 0 }, has_layer1: items1.length > 0 });
+      layer1: { int: 1 }, mode: { int: MODES[mode] ?? 0 }, has_layer1: items1.length > 0,
+      decode_srgb: this.m.encoding === "srgb" && this.m.settings.blend_space !== "linear" });
     const px = new Uint8Array(4);
     gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);  // wait for the GPU: honest frame time
     const t2 = performance.now();
