@@ -61,6 +61,7 @@ PLANES = "reflection/planes.json"
 
 # --- render_views / evaluate ---------------------------------------------------------------------
 RENDERS = "renders"
+RENDER_SETTINGS = "renders/settings.json"  # render_views' RenderSettings, visibility resolved
 EVAL_METRICS = "eval/metrics.json"
 EVAL_METRICS_PNG = "eval/metrics.png"
 EVAL_ENERGY_PNG = "eval/reflection_energy.png"

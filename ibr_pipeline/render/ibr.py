@@ -426,6 +426,21 @@ class IBRModel:
         return IBRModel(self.views, replace(self.settings, **changes))
 
 
+def stored_settings(ws) -> RenderSettings:
+    """The RenderSettings `render_views` rendered with (renders/settings.json), or the defaults
+    before it ran; a malformed file, an unknown field or a value out of range names the file."""
+    from ..errors import ConfigError
+    p = ws.path(L.RENDER_SETTINGS)
+    if not p.is_file():
+        return RenderSettings()
+    try:
+        s = replace(RenderSettings(), **json.loads(p.read_text()))
+        s.validate("render_views.renderer")
+    except (json.JSONDecodeError, TypeError, ConfigError) as e:
+        raise InputError(f"{p}: not render settings ({e}); rerun `ibr render_views`") from None
+    return s
+
+
 def auto_visibility(ws) -> str:
     """`visibility = auto`: the fuzzy depth test where G was fused from depth frames (geometry
     accurate to its tolerance), per-view z-buffering where it came from multi-view stereo."""

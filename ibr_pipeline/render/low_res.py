@@ -118,8 +118,9 @@ class IBRRenderer:
     capture path."""
 
     def __init__(self, ws, layers: bool = True):
-        from .ibr import IBRModel
-        self.model = IBRModel.load(ws, layers=layers)
+        from .ibr import IBRModel, stored_settings
+        # render_views' settings: DSRNet learns to upsample the renders `ibr render` makes
+        self.model = IBRModel.load(ws, layers=layers, settings=stored_settings(ws))
         self.exclude: dict = {}
 
     def __call__(self, name: str, camera: Camera) -> tuple[np.ndarray, np.ndarray]:

@@ -17,6 +17,7 @@ reflection layer the `<set>_single` renders are copies of `<set>` (the same mode
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -91,7 +92,7 @@ def inputs(ctx: StageContext) -> list[str]:
 def outputs(ctx: StageContext) -> list[str]:
     if not ctx.ws.path(L.REGISTERED_CAMERAS).is_file():
         return []
-    out = []
+    out = [L.RENDER_SETTINGS]
     for s, spec in render_sets(ctx).items():
         out += [L.render_file(s, f"{i:04d}.png") for i in range(len(spec["cameras"]))]
         out += [L.render_file(s, "timings.json"), L.render_file(s, "cameras.json")]
@@ -115,6 +116,8 @@ def run(ctx: StageContext) -> None:
     two = sum(v.layers[1] is not None for v in models[True].views)
     if two and any(not spec.get("layers", True) for spec in sets.values()):
         models[False] = IBRModel.load(ws, layers=False, settings=settings, progress=progress)
+    # what `supersample` renders its training pairs with, so that DSRNet learns these renders
+    ws.write_json(L.RENDER_SETTINGS, dataclasses.asdict(models[True].settings))
     log.info("render_views: %d views (%d with a reflection layer), GL: %s", len(models[True].views),
              two, renderer_name())
     for s, spec in sets.items():
@@ -161,4 +164,4 @@ def _copy_set(ws, src: str, dst: str, n: int) -> None:
 
 
 STAGE = Stage(name="render_views", help="view selection and blending into novel views (Xu §5.1)",
-              config=RenderViewsConfig, version="7", run=run, inputs=inputs, outputs=outputs)
+              config=RenderViewsConfig, version="8", run=run, inputs=inputs, outputs=outputs)

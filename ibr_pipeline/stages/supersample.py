@@ -1,7 +1,8 @@
 """Stage `supersample`: train DSRNet on the scene's own capture views (Xu et al. §5.2, §6).
 
 Leave-one-out renders of the registered capture views at 1/scale resolution (the real renderer of
-`render_views`, render/low_res.py's IBRRenderer: each view rendered without itself) are paired
+`render_views`, render/low_res.py's IBRRenderer, with the settings render_views rendered with,
+renders/settings.json: each view rendered without itself) are paired
 with the captured full-resolution images; consecutive capture views give the previous frame;
 90 % / 10 % split (§6), the validation views are never trained on. Writes the trained network
 `nn/dsrnet.pt` (read by `nn.infer.SuperSampler`, `ibr render --supersample`), `nn/train.json`
@@ -64,7 +65,9 @@ def inputs(ctx: StageContext) -> list[str]:
         return keys
     views = registered_views(ctx)
     keys += [ctx.scene.view(v).image for v in views]
-    if ctx.config.renderer == "ibr":  # what the render_views renderer reads
+    if ctx.config.renderer == "ibr":  # what the render_views renderer reads, and its settings
+        if ctx.ws.exists(L.RENDER_SETTINGS):  # before render_views ran: the defaults
+            keys.append(L.RENDER_SETTINGS)
         for v in views:
             keys += L.renderer_files(ctx.ws, v)
     else:

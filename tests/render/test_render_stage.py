@@ -6,9 +6,13 @@ import shutil
 import numpy as np
 import pytest
 
+from ibr_pipeline import layout as L
 from ibr_pipeline.cli import main
+from ibr_pipeline.errors import InputError
 from ibr_pipeline.io.images import read_image
 from ibr_pipeline.gt_workspace import write_gt_workspace
+from ibr_pipeline.render.ibr import RenderSettings
+from ibr_pipeline.workspace import Workspace
 
 
 @pytest.fixture(scope="module")
@@ -205,3 +209,28 @@ def test_render_cameras_in_every_format(gt_ws, tmp_path):
         assert np.abs(frames["transforms"][i] - by_name[n]).max() <= 1 / 255 + 1e-6
         assert np.abs(frames["path"][i] - by_name[n]).max() <= 1 / 255 + 1e-6
     assert (tmp_path / "path" / "video.mp4").is_file()  # a camera path is a sequence
+
+
+def test_supersample_trains_on_the_render_views_settings(tiny_scene, tmp_path, capsys):
+    """render_views writes the settings it rendered with; supersample's leave-one-out renderer
+    loads them (and lists the file as an input), so DSRNet learns the renders it will upsample."""
+    from ibr_pipeline.render.ibr import stored_settings
+    from ibr_pipeline.render.low_res import IBRRenderer
+    from ibr_pipeline.runner import StageContext
+    from ibr_pipeline.stages import supersample
+    ws_dir = tmp_path / "ws"
+    write_gt_workspace(tiny_scene[0], ws_dir, "reflection", global_mesh="none")
+    ws = Workspace(ws_dir)
+    assert stored_settings(ws) == RenderSettings()  # before render_views: the defaults
+    assert main(["-q", "render_views", str(ws_dir), "--no-progress", "--fly-frames", "2",
+                 "--renderer.per-view-max", "3", "--renderer.blend-space", "linear"]) == 0
+    s = stored_settings(ws)
+    assert (s.per_view_max, s.blend_space, s.visibility) == (3, "linear", "fuzzy")  # auto resolved
+    r = IBRRenderer(ws)
+    assert r.model.settings == s
+    r.model.release()
+    ctx = StageContext(ws, "supersample", supersample.SupersampleConfig(), ws.scene())
+    assert L.RENDER_SETTINGS in supersample.inputs(ctx)
+    ws.path(L.RENDER_SETTINGS).write_text('{"per_view_max": 0}')
+    with pytest.raises(InputError, match="settings.json: not render settings"):
+        stored_settings(ws)
