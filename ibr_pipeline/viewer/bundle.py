@@ -120,7 +120,8 @@ def _write_textures(stage: Path, key: str, layer_name: str, data, encoding: str)
 
 def _sources(ws) -> list[Path]:
     """Every file the bundle is made from (for `bundle_is_current`)."""
-    files = [ws.path(L.REGISTERED_CAMERAS), ws.path(ws.SCENE), ws.root / "ibr.toml"]
+    files = [ws.path(L.REGISTERED_CAMERAS), ws.path(ws.SCENE), ws.root / "ibr.toml",
+             ws.path(L.RENDER_SETTINGS)]
     scene = L.posed_scene(ws)
     for name in L.registered_cameras(ws):
         files.append(ws.path(scene.view(name).image))
@@ -148,8 +149,11 @@ def _render_views_config(ws):
 
 
 def render_settings(ws):
-    """The RenderSettings `render_views` uses for this workspace, visibility resolved."""
-    from ..render.ibr import auto_visibility
+    """The RenderSettings `render_views` rendered with (renders/settings.json: `ibr run --set`
+    overrides included), else the ones it would use from ibr.toml; visibility resolved."""
+    from ..render.ibr import auto_visibility, stored_settings
+    if ws.path(L.RENDER_SETTINGS).is_file():
+        return stored_settings(ws)
     s = _render_views_config(ws).renderer
     if s.visibility == "auto":
         s = replace(s, visibility=auto_visibility(ws))

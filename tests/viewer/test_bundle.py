@@ -165,3 +165,23 @@ def test_ibr_view_prints_its_url_serves_and_stops_on_ctrl_c(layered_ws, tmp_path
     finally:
         if p.poll() is None:
             p.kill()
+
+
+def test_bundle_takes_the_settings_render_views_rendered_with(layered_ws, tmp_path):
+    """`ibr run --set render_views.renderer.*` is not written to ibr.toml: the bundle follows
+    renders/settings.json, which render_views writes, and rebuilds when it changes."""
+    import dataclasses
+    ws_dir = tmp_path / "ws"
+    shutil.copytree(layered_ws, ws_dir)
+    ws = Workspace(ws_dir)
+    assert render_settings(ws).per_view_max == 4  # no render_views yet: ibr.toml's (defaults)
+    out = write_bundle(ws, progress=False)
+    assert bundle_is_current(ws, out)
+    ran = dataclasses.replace(render_settings(ws), per_view_max=2, delta=0.05)
+    ws.write_json(L.RENDER_SETTINGS, dataclasses.asdict(ran))
+    t = (out / "manifest.json").stat().st_mtime + 1
+    os.utime(ws.path(L.RENDER_SETTINGS), (t, t))
+    assert render_settings(ws) == ran
+    assert not bundle_is_current(ws, out)
+    man = json.loads((write_bundle(ws, progress=False) / "manifest.json").read_text())
+    assert (man["settings"]["per_view_max"], man["settings"]["delta"]) == (2, 0.05)
