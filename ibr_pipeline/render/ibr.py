@@ -26,7 +26,7 @@ import numpy as np
 from .. import layout as L
 from ..config import Options, param
 from ..errors import InputError
-from ..scene import Camera
+from ..scene import IMAGE_ENCODINGS, Camera
 from . import blend, selection
 
 log = logging.getLogger("ibr_pipeline.render")
@@ -106,8 +106,8 @@ class LayerData:
             raise ValueError(f"rgb must be (H, W, 3) = {(h, w, 3)}, got {np.shape(self.rgb)}")
         if self.beta is not None and np.shape(self.beta) != (h, w):
             raise ValueError(f"beta must be (H, W) = {(h, w)}, got {np.shape(self.beta)}")
-        if self.encoding not in ("linear", "srgb"):
-            raise ValueError(f"encoding must be 'linear' or 'srgb', got {self.encoding!r}")
+        if self.encoding not in IMAGE_ENCODINGS:
+            raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {self.encoding!r}")
 
 
 @dataclass

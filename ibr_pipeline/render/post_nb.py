@@ -11,6 +11,8 @@ references (tests/render/test_post_nb.py).
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numba import njit
 
@@ -162,18 +164,15 @@ def fill_holes(color: np.ndarray, covered: np.ndarray, decay_px: float) -> np.nd
 SRGB_LUT_SEGMENTS = 4096
 
 
+@functools.cache
 def srgb_lut() -> np.ndarray:
     """sRGB decoding sampled at SRGB_LUT_SEGMENTS + 1 points of [0, 1]: linear interpolation in
     it is within 1e-6 of io.images.srgb_to_linear, at a table read instead of a pow per value."""
-    global _SRGB_LUT
-    if _SRGB_LUT is None:
-        from ..io.images import srgb_to_linear
-        _SRGB_LUT = np.ascontiguousarray(
-            srgb_to_linear(np.linspace(0.0, 1.0, SRGB_LUT_SEGMENTS + 1)), np.float32)
-    return _SRGB_LUT
+    from ..io.images import srgb_to_linear
+    return np.ascontiguousarray(srgb_to_linear(np.linspace(0.0, 1.0, SRGB_LUT_SEGMENTS + 1)),
+                                np.float32)
 
 
-_SRGB_LUT = None
 _NO_LUT = np.zeros(0, np.float32)
 
 
