@@ -6,8 +6,8 @@
 Accuracy (held-out cameras of the scene, against gt/test/images): the oracle representation
 (GT depth + GT layers, `render/oracle.py`) with two layers and with one (the single-layer
 baseline), and — with `--ws` — the workspace's own representation (`IBRModel.load`, i.e. what
-view_mesh/reflection reconstructed). PSNR/SSIM/FLIP overall, inside reflectors (GT material with
-kr > 0) and over covered pixels only; hole fraction.
+view_mesh/reflection reconstructed). PSNR/SSIM/FLIP overall, inside reflectors (GT materials that
+reflect: kr > 0, or glass) and over covered pixels only; hole fraction.
 Speed: the fly-through cameras (or the test cameras) resized to --width x --height, rendered in
 sequence with hysteresis, median ms per frame over `repeats` passes (view selection, GL passes,
 read-back, hole filling, composition all included) for the oracle (`speed`) and, with `--ws`, for
@@ -36,9 +36,10 @@ def accuracy(model, root: Path, with_flip: bool = True) -> dict:
     from ibr_pipeline import metrics
     from ibr_pipeline.io.images import read_image
     from ibr_pipeline.scene import cameras_from_json
+    from ibr_pipeline.synthetic.materials import reflecting_indices
     test = cameras_from_json(root / "gt" / "test_cameras.json")
     mats = json.loads((root / "gt" / "scene.json").read_text())["materials"]
-    kinds = [m["index"] for m in mats if m.get("kr", 0) > 0]
+    kinds = reflecting_indices(mats)
     rows = []
     for name, cam in test.items():
         ref = read_image(root / "gt" / "test" / "images" / name)

@@ -10,7 +10,10 @@ a mesh using the KinectFusion algorithm"), and the reflector handling that keeps
   measured surface is at or behind the reflector plane; `apply_reflectors` replaces them with the
   depth of the plane itself (the reflector's surface, which is what G must contain: Xu et al. take
   the mirror geometry from Whelan et al. 2018) or drops them. Pixels in front of the plane (an
-  object standing before the mirror) keep their measurement.
+  object standing before the mirror) keep their measurement. Glass (`material = "glass"`) is left
+  as measured: what is seen behind a pane is the transmitted scene, real geometry that G must
+  hold so that the base layer I0 is drawn where it is (Xu et al. §7 name glass, which shows the
+  transmitted room and a reflection, as a limitation of their colour-less mirror model).
 * `mirror_world_fraction`: how much of a mesh lies behind a reflector, inside its extent: used for
   the warning when no reflectors.json is given and by the benchmark.
 """
@@ -114,10 +117,12 @@ def apply_reflectors(camera: Camera, depth: np.ndarray, reflectors: Sequence[Ref
 
     Returns (new depth, number of pixels changed). Reflectors without polygon or mask are skipped
     here only when `fill` is True (filling a whole plane would invent geometry); without fill they
-    drop what lies behind the plane."""
+    drop what lies behind the plane. Glass reflectors change nothing (module docstring)."""
     out = np.array(depth, dtype=np.float32, copy=True)
     changed = np.zeros(out.shape, bool)
     for r in reflectors:
+        if r.material == "glass":
+            continue
         vm = (view_masks or {}).get(r.name)
         if fill and r.polygon is None and vm is None:
             m, zp = reflector_mask(camera, out, r, rel_tol)
@@ -135,7 +140,8 @@ def mirror_world_points(points: np.ndarray, reflectors: Sequence[Reflector],
     """(N,) bool: points a camera would see *through* a reflector: they project inside the
     reflector's polygon and lie farther along the ray than the reflector plane (by `rel_tol`).
     That is the virtual mirror world, when no real geometry is there (a caller with ground truth
-    can intersect with "far from the true surface"). Reflectors without a polygon are ignored."""
+    can intersect with "far from the true surface"). Reflectors without a polygon are ignored, and
+    so is glass: what is behind a pane is real."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {pts.shape}")
@@ -147,7 +153,7 @@ def mirror_world_points(points: np.ndarray, reflectors: Sequence[Reflector],
         idx = np.nonzero(ok)[0]
         iu, iv = iu[idx].astype(int), iv[idx].astype(int)
         for r in reflectors:
-            if r.polygon is None:
+            if r.polygon is None or r.material == "glass":
                 continue
             inside = polygon_mask(cam, np.asarray(r.polygon))[iv, iu]
             zp = plane_depth(cam, r.plane)[iv, iu]

@@ -186,11 +186,12 @@ def polygon_contains(plane, polygon: np.ndarray, points: np.ndarray) -> np.ndarr
 
 
 def reflector_mask(camera: Camera, plane, polygon: np.ndarray | None, depth: np.ndarray,
-                   rel_tol: float = 0.02) -> np.ndarray:
+                   rel_tol: float = 0.02, transmits: bool = False) -> np.ndarray:
     """beta support of one reflector in one view (§4.3.1: the plane's extent projected into the
     image): pixels whose ray meets the plane inside `polygon` in front of the camera and whose
     first-surface depth agrees with the plane (|D - z_plane| < rel_tol * z_plane), so occluders in
-    front of the reflector are excluded. Without a polygon the plane is unbounded."""
+    front of the reflector are excluded. Without a polygon the plane is unbounded. `transmits`
+    (glass): the depth may also lie behind the plane, where the scene seen through the pane is."""
     depth = np.asarray(depth)
     if depth.shape != (camera.height, camera.width):
         raise ValueError(f"depth must be ({camera.height}, {camera.width}), got {depth.shape}")
@@ -206,7 +207,8 @@ def reflector_mask(camera: Camera, plane, polygon: np.ndarray | None, depth: np.
     ys, xs = np.mgrid[y0:y1, x0:x1]
     X, z = ray_plane_hits(camera, p, np.c_[xs.ravel(), ys.ravel()].astype(np.float64))
     d = depth[y0:y1, x0:x1].reshape(-1)
-    sel = np.isfinite(z) & (z > 1e-3) & (d > 0) & (np.abs(d - z) < rel_tol * z)
+    agree = (d > z * (1 - rel_tol)) if transmits else (np.abs(d - z) < rel_tol * z)
+    sel = np.isfinite(z) & (z > 1e-3) & (d > 0) & agree
     if polygon is not None and sel.any():
         sel[sel] = polygon_contains(plane, polygon, X[sel])
     ok[y0:y1, x0:x1] = sel.reshape(y1 - y0, x1 - x0)

@@ -244,7 +244,8 @@ class Loader:
                            interpolation=cv2.INTER_NEAREST) > 0
             return m & (wd > 0)
         poly = None if refl.get("polygon") is None else np.asarray(refl["polygon"])
-        return reflector_mask(wc, refl["plane"], poly, wd, rel_tol=0.02)
+        return reflector_mask(wc, refl["plane"], poly, wd, rel_tol=0.02,
+                              transmits=refl.get("material") == "glass")
 
     def footprint(self, name, refl) -> "Footprint":
         """The view's beta support and M1 depth for `refl` (mirror points cast into G, §4.3.1)."""

@@ -11,7 +11,7 @@ ground truth. Methods compared on the same cameras:
            pixel, warped with the global mesh's depth only (no per-view meshes, blending or
            layers) — the floor; its ms/frame is measured here (numpy + open3d ray casting, CPU)
 PSNR/SSIM/FLIP (`metrics`) over the whole image and inside reflectors (held-out views: GT material
-with kr > 0 from gt/test/geom; leave-one-out views: GT beta > 0, or the reflection stage's beta when
+that reflects (kr > 0, or glass) from gt/test/geom; leave-one-out views: GT beta > 0, or the reflection stage's beta when
 there is no GT; held-out photographs of a real capture: the reflectors of reflection/planes.json
 projected into them, less what the global mesh puts in front). Temporal stability on the
 fly-through: mean absolute frame-to-frame change of ours vs the GT video, and the error of that
@@ -184,8 +184,8 @@ def _reflector_mask(ctx: StageContext, name: str, source: str, shape, projected:
         geom = ws.path(f"input/gt/test/geom/{Path(name).stem}.npz")
         scene = ws.path("input/gt/scene.json")
         if geom.is_file() and scene.is_file():
-            kinds = [m["index"] for m in json.loads(scene.read_text()).get("materials", [])
-                     if m.get("kr", 0) > 0]
+            from ..synthetic.materials import reflecting_indices
+            kinds = reflecting_indices(json.loads(scene.read_text()).get("materials", []))
             with np.load(geom) as z:
                 return np.isin(z["material"], kinds)
         return None
@@ -440,4 +440,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="7", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="8", run=run, inputs=inputs, outputs=outputs)

@@ -99,6 +99,6 @@ def run(ctx: StageContext, view: str) -> None:
 
 
 STAGE = Stage(name="reflection", help="two-layer reflection decomposition (Xu et al. §4.3)",
-              config=ReflectionConfig, version="8", run=run, per_view=True,
+              config=ReflectionConfig, version="9", run=run, per_view=True,
               inputs=inputs, view_inputs=view_inputs, view_outputs=view_outputs,
               views=registered_views)

@@ -47,6 +47,14 @@ class Material:
         return {"glass_pane": FRESNEL_PANE, "dielectric": FRESNEL_DIELECTRIC}.get(self.kind, FRESNEL_NONE)
 
 
+def reflecting_indices(materials: list[dict]) -> list[int]:
+    """Indices of the materials that reflect, from a GT scene.json's "materials" list: a coat or
+    mirror (kr > 0) and glass, which reflects by Fresnel with kr 0 (the "inside reflectors"
+    masks of evaluation)."""
+    return [m["index"] for m in materials
+            if m.get("kr", 0) > 0 or m.get("kind") in ("glass_pane", "dielectric")]
+
+
 def _check_dn(d: np.ndarray, n: np.ndarray) -> None:
     if d.shape != n.shape or d.ndim != 2 or d.shape[1] != 3:
         raise ValueError(f"directions and normals must both be (N, 3), got {d.shape}, {n.shape}")

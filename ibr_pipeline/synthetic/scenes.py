@@ -169,7 +169,8 @@ def build_world(name: str, seed: int = 0) -> World:
         b.box((3.55, y1, 0), (3.67, y1 + 0.05, z1), frame)
         r0 = ((1 - GLASS_IOR) / (1 + GLASS_IOR)) ** 2
         reflectors.insert(0, {"name": "glass", "plane": [-1.0, 0.0, 0.0, x],
-                              "beta": round(2 * r0 / (1 + r0), 6), "polygon": poly})
+                              "beta": round(2 * r0 / (1 + r0), 6), "polygon": poly,
+                              "material": "glass"})
     if name == "curved":
         chrome = Material("chrome", "mirror", kr=0.85)
         crystal = Material("crystal", "dielectric", ior=GLASS_IOR, tint=(0.92, 0.97, 0.95))
