@@ -155,11 +155,14 @@ def reflections(rep, per_reflector: int = 2) -> None:
     if not stats and not planes.get("reflectors") and not planes.get("candidates"):
         return
     source = {r["name"]: r.get("source", "?") for r in planes.get("reflectors", [])}
+    material = {r["name"]: r.get("material") for r in planes.get("reflectors", [])}
     vsrc = root / "views"
     rows = []
     for name, s in stats.items():
         betas = [b for b in s["beta"] if isinstance(b, (int, float))]
         kind = {True: "mirror (colour-less I0)", False: "glossy / partial"}.get(s["mirror"], "-")
+        if material.get(name) == "glass":
+            kind = "glass (I0: the scene behind the pane)"
         rows.append([name, kind, source.get(name, "?"),
                      rep.fact(len(s["kept"]), vsrc, f"*/{L.LAYERS}:{name}:kept"),
                      rep.fact(len(s["dropped"]), vsrc, f"*/{L.LAYERS}:{name}:discarded"),

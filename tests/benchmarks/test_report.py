@@ -185,3 +185,20 @@ def test_detection_candidates_are_listed_with_their_evidence(ws):
     facts = json.loads((ws / "report" / "facts.json").read_text())
     keys = {f["key"]: f["value"] for f in facts if f["source"] == "reflection/planes.json"}
     assert keys["candidates.0.score.surface_error"] == 0.0312 and keys["candidates.0.views"] == 12
+
+
+def test_a_glass_reflector_is_named_as_glass(ws):
+    """The per-reflector table says what each layer holds: a pane's I0 is the scene behind it."""
+    (ws / "reflection").mkdir()
+    refl = [{"name": "pane", "plane": [-1, 0, 0, 3.6], "beta": 0.08, "material": "glass",
+             "source": "user"},
+            {"name": "mirror", "plane": [1, 0, 0, 0], "beta": 1.0, "material": "mirror",
+             "source": "user"}]
+    (ws / "reflection" / "planes.json").write_text(json.dumps(
+        {"format": "ibr_pipeline.reflectors/1", "reflectors": refl, "candidates": []}))
+    (ws / "views" / "v0" / "layers.json").write_text(json.dumps(
+        {"reflector": "pane", "reflectors": [{"name": "pane", "beta": 0.08, "mirror": False},
+                                             {"name": "mirror", "beta": 1.0, "mirror": True}]}))
+    page = report.write_report(ws).read_text()
+    assert "glass (I0: the scene behind the pane)" in page
+    assert "mirror (colour-less I0)" in page
