@@ -13,7 +13,7 @@ DEPTH_TOL_M = 0.03     # §5.1.3: a pixel contributes when within 3 cm of the fr
 DELTA = 0.033          # Eq. 15: w_k = exp(−d_k/δ), δ = 0.033
 # §5.1.4 feathering: weight falling smoothly to 0 at the image border. Xu et al. use 20 px; 5 px
 # here, because a wide feather hands the border of every view to views farther from the novel
-# one: held-out PSNR +0.2-0.3 dB on three real captures, +0.02 on the demo (docs/RENDERING.md)
+# one: held-out PSNR +0.19 to +0.24 dB on three real captures (docs/RENDERING.md)
 FEATHER_PX = 5
 EDGE_DECAY_PX = 5      # §5.1.4: weight decay within ±5 px of depth edges
 WEIGHT_FLOOR = 1e-3    # ours: decayed texture weights never reach exactly 0 (see texture_alpha)
