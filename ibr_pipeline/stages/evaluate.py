@@ -11,8 +11,8 @@ ground truth. Methods compared on the same cameras:
            pixel, warped with the global mesh's depth only (no per-view meshes, blending or
            layers) — the floor; its ms/frame is measured here (numpy + open3d ray casting, CPU)
 PSNR/SSIM/FLIP (`metrics`) over the whole image and inside reflectors (held-out views: GT material
-that reflects (kr > 0, or glass) from gt/test/geom; leave-one-out views: GT beta > 0, or the reflection stage's beta when
-there is no GT; held-out photographs of a real capture: the reflectors of reflection/planes.json
+that reflects (kr > 0, or glass) from gt/test/geom; leave-one-out views: GT beta > 0, or the
+reflection stage's beta when there is no GT; held-out photographs of a real capture: the reflectors of reflection/planes.json
 projected into them, less what the global mesh puts in front). Temporal stability on the
 fly-through: mean absolute frame-to-frame change of ours vs the GT video, and the error of that
 change (flicker).
