@@ -7,7 +7,10 @@ Per capture view (docs/SYNTHETIC.md): M0 = grid mesh of gt/geom depth cut at dep
 beta = gt/I0, gt/I1, gt/beta; M1 = the reflection layer's mirror-world geometry: for every pixel
 with beta > 0 the reflector whose plane passes through its GT point is found, and the camera ray is
 cast against the GT mesh mirrored through that plane (only the part in front of the plane), which
-gives the virtual point the reflection is seen at.
+gives the virtual point the reflection is seen at. Behind glass (a reflector of material "glass")
+M0 takes the depth of what the pane transmits, the camera ray cast on through it into the GT
+mesh, as the pipeline's glass model does (docs/REFLECTION.md "Glass"), so that the oracle stays
+the ceiling of that model and not of a pane painted with the room behind it.
 """
 from __future__ import annotations
 
@@ -101,6 +104,7 @@ class GroundTruth:
         self.reflectors = read_reflectors(rp) if rp.is_file() else ()
         self._mesh = None
         self._scenes: dict[int, object] = {}
+        self._direct = None  # the GT mesh itself, for rays through glass
 
     def _scene(self, i: int):
         if i not in self._scenes:
@@ -131,6 +135,42 @@ class GroundTruth:
         beta = read_image(self.root / "gt" / "beta" / f"{stem}.png")[..., 0]
         return i0, i1, beta
 
+    def _mesh_scene(self):
+        if self._direct is None:
+            from ..geometry.raycast import build_scene
+            from ..io.mesh import read_ply
+            if self._mesh is None:
+                self._mesh = read_ply(self.root / "gt" / "mesh.ply")
+            self._direct = build_scene(self._mesh.vertices, self._mesh.faces)
+        return self._direct
+
+    def transmitted_depth(self, camera: Camera, depth: np.ndarray) -> np.ndarray:
+        """`depth` with every pixel whose GT point lies on a glass reflector (inside its polygon)
+        replaced by the z-depth of what the pane transmits: the camera ray cast on from just
+        beyond the pane into the GT mesh (a thin pane, no ray offset, as the tracer models it)."""
+        from ..geometry.fusion import polygon_mask
+        from ..geometry.raycast import camera_rays, cast
+        glass = [r for r in self.reflectors if r.material == "glass"]
+        out = np.array(depth, dtype=np.float32, copy=True)
+        if not glass or not (depth > 0).any():
+            return out
+        uv = camera.pixel_grid().reshape(-1, 2)
+        pts = camera.unproject(uv, depth.reshape(-1).astype(np.float64))
+        origins, dirs = camera_rays(camera)
+        for r in glass:
+            plane = np.asarray(r.plane, np.float64)
+            on = (depth.reshape(-1) > 0) & (np.abs(pts @ plane[:3] + plane[3]) < 0.02)
+            if r.polygon is not None:
+                on &= polygon_mask(camera, np.asarray(r.polygon)).reshape(-1)
+            if not on.any():
+                continue
+            start = pts[on] + 1e-3 * dirs[on]  # past the pane's own triangles
+            t = cast(self._mesh_scene(), start, dirs[on])["t_hit"]
+            z = ((start + dirs[on] * np.where(np.isfinite(t), t, 0.0)[:, None] - camera.center)
+                 @ camera.viewing_direction)
+            out.reshape(-1)[np.flatnonzero(on)] = np.where(np.isfinite(t) & (z > 0), z, 0.0)
+        return out
+
     def virtual_depth(self, camera: Camera, depth: np.ndarray, beta: np.ndarray) -> np.ndarray:
         """(H, W) z-depth of the reflection layer's virtual points (0 outside reflectors)."""
         from ..geometry.raycast import camera_rays, cast, hit_depth
@@ -160,7 +200,8 @@ class GroundTruth:
         from ..io.images import read_image
         s = settings or RenderSettings()
         cam = self.cameras[name]
-        depth = self.geom(name)["depth"].astype(np.float32)
+        surface = self.geom(name)["depth"].astype(np.float32)  # the first surface: a pane itself
+        depth = self.transmitted_depth(cam, surface)
         edges = depth_edges(depth)
         alpha0 = blend.texture_alpha(edges, s.feather_px, s.edge_decay_px)
         v0, f0 = simplified_grid_mesh(cam, depth, step)
@@ -168,7 +209,7 @@ class GroundTruth:
             img = image if image is not None else read_image(self.root / "images" / name)
             return ViewData(name, cam, (LayerData(v0, f0, img, alpha0), None))
         i0, i1, beta = self.layers(name)
-        vdepth = self.virtual_depth(cam, depth, beta) if (beta > 0).any() else None
+        vdepth = self.virtual_depth(cam, surface, beta) if (beta > 0).any() else None
         v1, f1 = simplified_grid_mesh(cam, vdepth, step) if vdepth is not None else (None, np.zeros((0, 3)))
         if len(f1) == 0:
             return ViewData(name, cam, (LayerData(v0, f0, i0, alpha0, beta), None))

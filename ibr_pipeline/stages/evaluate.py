@@ -440,4 +440,4 @@ def _chart(path: Path, methods: dict) -> None:
 
 
 STAGE = Stage(name="evaluate", help="held-out metrics, charts and videos (PSNR/SSIM/FLIP)",
-              config=EvaluateConfig, version="8", run=run, inputs=inputs, outputs=outputs)
+              config=EvaluateConfig, version="9", run=run, inputs=inputs, outputs=outputs)

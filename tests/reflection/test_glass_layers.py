@@ -67,3 +67,26 @@ def test_glass_counts_as_a_reflector_in_evaluation():
     mats = [{"index": 0, "kind": "diffuse", "kr": 0.0}, {"index": 1, "kind": "glossy", "kr": 0.3},
             {"index": 2, "kind": "glass_pane", "kr": 0.0}, {"index": 3, "kind": "mirror", "kr": 1}]
     assert reflecting_indices(mats) == [1, 2, 3]
+
+
+def test_the_oracle_draws_what_the_pane_transmits(glass_scene):
+    """The oracle's M0 behind glass is the GT geometry beyond the pane (its first surface is the
+    pane); everywhere else it is the GT depth unchanged."""
+    from ibr_pipeline.render.oracle import GroundTruth
+    gt = GroundTruth(glass_scene)
+    pane = next(r for r in gt.reflectors if r.name == "glass")
+    n, d = np.asarray(pane.plane[:3]), pane.plane[3]
+    moved = 0
+    for name, cam in gt.cameras.items():
+        surface = gt.geom(name)["depth"].astype(np.float32)
+        through = gt.transmitted_depth(cam, surface)
+        changed = np.abs(through - surface) > 1e-4
+        X = depth_points(cam, surface)
+        on_pane = np.abs(X @ n + d) < 0.02
+        assert not (changed & ~on_pane).any()            # only pane pixels move
+        if changed.any():                                # and they move behind it
+            Y = depth_points(cam, through)[changed]
+            assert np.all(Y @ n + d < -1e-4), name
+            assert np.all(through[changed] > surface[changed])
+        moved += changed.sum()
+    assert moved > 2000, moved
