@@ -37,8 +37,12 @@ class RenderSettings(Options):
     """Every constant of §5.1; the `render_views` stage embeds these as [render_views.renderer]
     (`ibr render` and `evaluate` read them from there)."""
 
-    lam: float = param(selection.LAMBDA, "Eq. 14 λ: weight of the camera-distance term",
-                       min=0.0, max=100.0)
+    lam: float = param(selection.LAMBDA, "Eq. 14 λ: weight of the camera-distance term, the "
+                       "baseline's parallax angle at the scene depth (ours; the paper's 0.1 "
+                       "divides by the distance from the world origin)", min=0.0, max=100.0)
+    scene_depth: float = param(0.0, "Eq. 14's D: the scene's median depth that the camera "
+                               "distance is divided by; 0 = the workspace's (global/poses.json "
+                               "median_scene_depth)", min=0.0, max=1e6)
     delta: float = param(blend.DELTA, "Eq. 15 δ: blending weight w_k = exp(-d_k/δ)",
                          min=1e-4, max=10.0)
     max_angle: float = param(selection.MAX_ANGLE_DEG, "§5.1.2 view selection: largest angle "
@@ -146,6 +150,9 @@ class IBRModel:
         self.centers = np.array([v.camera.center for v in self.views])
         self.axes = np.array([v.camera.viewing_direction for v in self.views])
         self.has_layer1 = any(v.layers[1] is not None for v in self.views)
+        # Eq. 14's D: the workspace's (resolve_settings), else the median depth of the views' own
+        # surface meshes (a model built from views, not loaded from a workspace)
+        self.scene_depth = self.settings.scene_depth or _median_view_depth(self.views)
         encodings = {lay.encoding for v in self.views for lay in v.layers if lay is not None}
         if len(encodings) != 1:
             raise ValueError(f"IBR model: the layers' textures mix encodings {sorted(encodings)}")
@@ -169,8 +176,7 @@ class IBRModel:
         names = [n for n in scene.names if n in cams]
         if not names:
             raise InputError(f"{ws.path(L.REGISTERED_CAMERAS)}: no registered view to render from")
-        if s.visibility == "auto":
-            s = replace(s, visibility=auto_visibility(ws))
+        s = resolve_settings(ws, s)
         for name in tqdm(names, desc="loading views", unit="view", disable=not progress, leave=False):
             views.append(load_view(ws, name, cams[name], scene.view(name).image, layers, s,
                                    scene.image_encoding))
@@ -180,7 +186,7 @@ class IBRModel:
     def select(self, camera: Camera, exclude=(), previous: "Frame | None" = None):
         s = self.settings
         d = selection.view_distance(self.axes, self.centers, camera.viewing_direction,
-                                    camera.center, s.lam)
+                                    camera.center, s.lam, self.scene_depth)
         avail = np.array([n not in set(exclude) for n in self.names])
         if not avail.any():
             raise ValueError("IBR model: every view is excluded")
@@ -439,6 +445,42 @@ def stored_settings(ws) -> RenderSettings:
     except (json.JSONDecodeError, TypeError, ConfigError) as e:
         raise InputError(f"{p}: not render settings ({e}); rerun `ibr render_views`") from None
     return s
+
+
+def median_view_depth(camera: Camera, vertices: np.ndarray) -> float | None:
+    """Median z-depth of a view's surface-mesh vertices in its own camera (None: no vertices)."""
+    if not len(vertices):
+        return None
+    return float(np.median((np.asarray(vertices) - camera.center) @ camera.viewing_direction))
+
+
+def scene_depth_of(depths) -> float:
+    """Eq. 14's D from the views' median depths (`median_view_depth`): their median, 1 if none."""
+    z = [d for d in depths if d is not None]
+    d = float(np.median(z)) if z else 0.0
+    return d if d > 0 else 1.0
+
+
+def _median_view_depth(views) -> float:
+    return scene_depth_of(median_view_depth(v.camera, v.layers[0].vertices) for v in views)
+
+
+def resolve_settings(ws, s: RenderSettings) -> RenderSettings:
+    """`s` with what "auto" and 0 leave to the workspace filled in: visibility, scene_depth."""
+    if s.visibility == "auto":
+        s = replace(s, visibility=auto_visibility(ws))
+    if not s.scene_depth:
+        s = replace(s, scene_depth=workspace_scene_depth(ws))
+    return s
+
+
+def workspace_scene_depth(ws) -> float:
+    """The median scene depth the poses stage measured (global/poses.json), 0 when unknown."""
+    d = L.poses_report(ws).get("median_scene_depth")
+    if d is not None and not (isinstance(d, (int, float)) and d > 0):
+        raise InputError(f"{ws.path(L.POSES_REPORT)}: median_scene_depth {d!r} is not a positive "
+                         "length (rerun `ibr poses`)")
+    return float(d or 0.0)
 
 
 def auto_visibility(ws) -> str:

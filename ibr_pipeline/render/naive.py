@@ -20,7 +20,7 @@ from ..geometry.decompose_terms import sample_bilinear
 from ..scene import Camera
 from ..geometry import raycast
 from .blend import fill_holes
-from .selection import view_distance
+from .selection import LAMBDA, view_distance
 
 DEPTH_TOL_REL = 0.02   # visibility: |z_k(x) - depth_k| within 2 % of depth, plus 1 cm
 DEPTH_TOL_ABS = 0.01
@@ -51,14 +51,15 @@ class NaiveWarp:
     mesh (vertices (V, 3), faces (F, 3)); an image is an (H, W, 3) array or a path, read on first
     use (only the views nearest to the rendered cameras are ever read)."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, views: dict, lam: float = 0.1,
-                 max_views: int = MAX_VIEWS, encoding: str = "linear"):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, views: dict,
+                 lam: float = LAMBDA, max_views: int = MAX_VIEWS, encoding: str = "linear",
+                 scene_depth: float = 1.0):
         if not views:
             raise ValueError("NaiveWarp needs at least one captured view")
         self.encoding = encoding  # of the image files given by path: decoded to linear on read
         self.scene = raycast.build_scene(vertices, faces)
         self.views = dict(views)
-        self.lam = lam
+        self.lam, self.scene_depth = lam, scene_depth  # Eq. 14's λ and D (selection.py)
         self.max_views = max_views
         self._depth: dict[str, np.ndarray] = {}
         self._image: dict[str, np.ndarray] = {}
@@ -85,7 +86,7 @@ class NaiveWarp:
         """The captured image nearest to `camera` by Eq. 14, unwarped (the floor every IBR paper
         compares with), resized to the camera's size when it differs."""
         dist = view_distance(self._axes, self._centers, camera.viewing_direction, camera.center,
-                             lam=self.lam)
+                             self.lam, self.scene_depth)
         skip = set(exclude)
         name = next(self._names[i] for i in np.argsort(dist) if self._names[i] not in skip)
         img = self._view_image(name)
@@ -98,7 +99,7 @@ class NaiveWarp:
         """(H, W, 3) colour, (H, W) bool covered-by-a-view, and the frame's milliseconds (the
         captured views' depth maps are preprocessing: ray-cast once, outside the timing)."""
         dist = view_distance(self._axes, self._centers, camera.viewing_direction, camera.center,
-                             lam=self.lam)  # Eq. 14
+                             self.lam, self.scene_depth)  # Eq. 14
         skip = set(exclude)
         order = [self._names[i] for i in np.argsort(dist) if self._names[i] not in skip]
         for name in order[:self.max_views]:  # preprocessing, outside the frame time
@@ -129,7 +130,7 @@ class NaiveWarp:
         return np.clip(img, 0, 1), cov, (time.perf_counter() - t0) * 1e3
 
 
-def from_workspace(ws, lam: float = 0.1) -> NaiveWarp | None:
+def from_workspace(ws, lam: float = LAMBDA, scene_depth: float = 0.0) -> NaiveWarp | None:
     """The baseline over a workspace's global mesh and registered captured views (None when the
     global mesh or the cameras are missing)."""
     from ..io.mesh import read_ply
@@ -143,4 +144,8 @@ def from_workspace(ws, lam: float = 0.1) -> NaiveWarp | None:
     scene = L.posed_scene(ws)
     views = {name: (cam, ws.path(scene.view(name).image)) for name, cam in cams.items()}
     mesh = read_ply(mesh_path)
-    return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam, encoding=scene.image_encoding)
+    if not scene_depth:  # the workspace's, as the renderer resolves it
+        from .ibr import workspace_scene_depth
+        scene_depth = workspace_scene_depth(ws) or 1.0
+    return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam, encoding=scene.image_encoding,
+                     scene_depth=scene_depth)

@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
-LAMBDA = 0.1          # Eq. 14: weight of the translation term (§5.1.1, "λ = 0.1")
+LAMBDA = 1.0          # Eq. 14's translation term as a parallax angle (view_distance; paper: 0.1)
 MAX_ANGLE_DEG = 30.0  # §5.1.2 / Fig. 7: maximum angle between optical axes
 MAX_DIST_M = 1.8      # §5.1.2 / Fig. 7: maximum distance between optical centres
 ANGLE_BINS = 3        # §5.1.2: three angle intervals per quadrant
 DIST_BINS = 3         # §5.1.2: three distance intervals per quadrant
-NORM_FLOOR_M = 1.0    # ours: floor of ‖t_n‖ in Eq. 14 (a camera at the world origin, see below)
 FALLBACK_VIEWS = 4    # ours: views taken by smallest d_k when none satisfies the limits
 
 
@@ -32,13 +31,16 @@ def axis_angle_deg(axes: np.ndarray, axis: np.ndarray) -> np.ndarray:
 
 
 def view_distance(axes: np.ndarray, centers: np.ndarray, axis_n: np.ndarray, center_n: np.ndarray,
-                  lam: float = LAMBDA, norm_floor: float = NORM_FLOOR_M) -> np.ndarray:
-    """Eq. 14: d_k = ∠(R_k^z, R_n^z)·π/180 + λ‖t_k − t_n‖/‖t_n‖ for every captured view k.
+                  lam: float = LAMBDA, scene_depth: float = 1.0) -> np.ndarray:
+    """Eq. 14 for every captured view k: d_k = ∠(R_k^z, R_n^z)·π/180 + λ‖t_k − t_n‖/D.
 
     The angle is in degrees in the paper, so ∠·π/180 is the angle in radians. The paper divides
-    by ‖t_n‖, the novel centre's distance from the world origin; that blows up for a camera at
-    (or near) the origin, so we divide by max(‖t_n‖, norm_floor) (1 m by default): a camera at the
-    origin then weighs translation as λ per metre, and any camera farther than 1 m is unchanged.
+    the translation by ‖t_n‖, the novel camera's distance from the world origin, with λ = 0.1.
+    That depends on where the origin is: an SfM capture's normalised frame puts it among the
+    cameras (‖t_n‖ → 0), a scan's frame in a corner of the room. Here D is the scene's median
+    depth (`RenderSettings.scene_depth`), so the term is the angle the baseline subtends at the
+    scene, in radians like the first, and the same capture gives the same d_k wherever its
+    origin is; λ = 1 weighs rotation and parallax alike (docs/RENDERING.md "View distance").
     """
     axes = np.asarray(axes, dtype=np.float64)
     centers = np.asarray(centers, dtype=np.float64)
@@ -46,9 +48,11 @@ def view_distance(axes: np.ndarray, centers: np.ndarray, axis_n: np.ndarray, cen
         raise ValueError(f"axes and centers must both be (N, 3), got {axes.shape}, {centers.shape}")
     if np.shape(center_n) != (3,):
         raise ValueError(f"center_n must be (3,), got {np.shape(center_n)}")
+    if not scene_depth > 0:
+        raise ValueError(f"scene_depth must be > 0, got {scene_depth}")
     ang = np.radians(axis_angle_deg(axes, axis_n))  # ∠(R_k^z, R_n^z)·π/180
-    norm = max(float(np.linalg.norm(center_n)), norm_floor)
-    return ang + lam * np.linalg.norm(centers - np.asarray(center_n, dtype=np.float64), axis=1) / norm
+    return ang + lam * np.linalg.norm(centers - np.asarray(center_n, dtype=np.float64),
+                                      axis=1) / scene_depth
 
 
 def sub_regions(R_n: np.ndarray, center_n: np.ndarray, axes: np.ndarray, centers: np.ndarray,

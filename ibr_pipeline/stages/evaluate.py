@@ -396,9 +396,16 @@ def _render_config(ctx: StageContext):
     return build_config(RenderViewsConfig, "render_views", ctx.ws.config().get("render_views", {}))
 
 
+def _renderer_settings(ctx: StageContext):
+    """`_render_config`'s renderer with what it leaves to the workspace resolved (Eq. 14's D)."""
+    from ..render.ibr import resolve_settings
+    return resolve_settings(ctx.ws, _render_config(ctx).renderer)
+
+
 def _naive_model(ctx: StageContext):
     from ..render.naive import from_workspace
-    return from_workspace(ctx.ws, lam=_render_config(ctx).renderer.lam)
+    s = _renderer_settings(ctx)
+    return from_workspace(ctx.ws, lam=s.lam, scene_depth=s.scene_depth)
 
 
 def _oracle_model(ctx: StageContext, ex):
@@ -410,7 +417,7 @@ def _oracle_model(ctx: StageContext, ex):
     # not normalised: without depth frames the poses stage rescales even given poses)
     if not (root / "cameras.json").is_file() or not scene_is_input_frame(ctx):
         return None
-    return GroundTruth(root).model(layers=True, settings=_render_config(ctx).renderer,
+    return GroundTruth(root).model(layers=True, settings=_renderer_settings(ctx),
                                    map_fn=None if ex.jobs == 1 else ex.results)
 
 

@@ -151,13 +151,10 @@ def _render_views_config(ws):
 def render_settings(ws):
     """The RenderSettings `render_views` rendered with (renders/settings.json: `ibr run --set`
     overrides included), else the ones it would use from ibr.toml; visibility resolved."""
-    from ..render.ibr import auto_visibility, stored_settings
+    from ..render.ibr import resolve_settings, stored_settings
     if ws.path(L.RENDER_SETTINGS).is_file():
-        return stored_settings(ws)
-    s = _render_views_config(ws).renderer
-    if s.visibility == "auto":
-        s = replace(s, visibility=auto_visibility(ws))
-    return s
+        return resolve_settings(ws, stored_settings(ws))
+    return resolve_settings(ws, _render_views_config(ws).renderer)
 
 
 def _extra_cameras(ws) -> dict[str, list]:
@@ -179,7 +176,7 @@ def write_bundle(ws, out: Path | None = None, progress: bool = True) -> Path:
     from tqdm import tqdm
 
     from ..render import blend, gl, selection
-    from ..render.ibr import load_view
+    from ..render.ibr import load_view, median_view_depth, scene_depth_of
 
     out = Path(out) if out is not None else ws.path("export/web")
     if not ws.path(L.REGISTERED_CAMERAS).is_file():
@@ -200,12 +197,13 @@ def write_bundle(ws, out: Path | None = None, progress: bool = True) -> Path:
         shutil.rmtree(left, ignore_errors=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
     try:
-        views = []
+        views, depths = [], []
         for i, name in enumerate(tqdm(names, desc="web bundle", unit="view", disable=not progress,
                                       leave=False)):
             key = f"v{i:04d}"
             image = scene.view(name).image
             single = load_view(ws, name, cams[name], image, False, s, enc).layers[0]
+            depths.append(median_view_depth(cams[name], single.vertices))
             two = load_view(ws, name, cams[name], image, True, s, enc).layers
             layers = {"single": {**_write_layer(stage, key, "single", single),
                                  **_write_textures(stage, key, "single", single, enc)}}
@@ -216,11 +214,12 @@ def write_bundle(ws, out: Path | None = None, progress: bool = True) -> Path:
                     layers[lname] = {**_write_layer(stage, key, lname, data),
                                      **_write_textures(stage, key, lname, data, enc)}
             views.append({**_camera_json(name, cams[name]), "key": key, "layers": layers})
+        if not s.scene_depth:  # Eq. 14's D as IBRModel takes it without a poses report
+            s = replace(s, scene_depth=scene_depth_of(depths))
         manifest = {"format": FORMAT, "version": VERSION, "workspace": ws.root.name,
                     "encoding": enc, "settings": asdict(s), "shaders": webgl_shaders(),
                     "near": gl.NEAR_M, "far": gl.FAR_M,
-                    "selection": {"norm_floor": selection.NORM_FLOOR_M,
-                                  "fallback": selection.FALLBACK_VIEWS,
+                    "selection": {"fallback": selection.FALLBACK_VIEWS,
                                   "view_weight_floor": blend.VIEW_WEIGHT_FLOOR},
                     "views": views, **_extra_cameras(ws)}
         (stage / MANIFEST).write_text(json.dumps(manifest))

@@ -10,15 +10,26 @@ from ibr_pipeline.render import selection
 def test_view_distance_matches_eq14_by_hand():
     axes = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, 0, 1.0]])
     centers = np.array([[2.0, 0, 0], [2.0, 0, 0], [2.0, 1.0, 0]])
-    d = selection.view_distance(axes, centers, np.array([0, 0, 1.0]), np.array([2.0, 0, 0]))
-    # same pose: 0; 90° turn: π/2; 1 m sideways with ‖t_n‖ = 2 m: 0.1 · 1 / 2
-    assert d == pytest.approx([0.0, math.pi / 2, 0.05])
+    d = selection.view_distance(axes, centers, np.array([0, 0, 1.0]), np.array([2.0, 0, 0]),
+                                lam=1.0, scene_depth=4.0)
+    # same pose: 0; 90° turn: π/2; 1 sideways at a scene depth of 4: the parallax angle 1 / 4
+    assert d == pytest.approx([0.0, math.pi / 2, 0.25])
 
 
-def test_view_distance_camera_at_origin_is_finite():
-    d = selection.view_distance(np.array([[0, 0, 1.0]]), np.array([[1.0, 0, 0]]),
-                                np.array([0, 0, 1.0]), np.zeros(3))
-    assert np.isfinite(d).all() and d[0] == pytest.approx(0.1 * 1.0 / selection.NORM_FLOOR_M)
+def test_view_distance_does_not_depend_on_the_origin_or_the_units():
+    rng = np.random.default_rng(1)
+    centers = rng.uniform(-1, 1, (20, 3))
+    axes = rng.normal(size=(20, 3))
+    axis_n, center_n = np.array([0.1, 0, 1.0]), np.array([0.2, -0.1, 0.3])
+    d = selection.view_distance(axes, centers, axis_n, center_n, scene_depth=2.5)
+    shift = np.array([40.0, -7.0, 3.0])  # the same capture in a frame with its origin elsewhere
+    assert selection.view_distance(axes, centers + shift, axis_n, center_n + shift,
+                                   scene_depth=2.5) == pytest.approx(d)
+    # and in millimetres, with its scene depth in millimetres
+    assert selection.view_distance(axes, 1000 * centers, axis_n, 1000 * center_n,
+                                   scene_depth=2500.0) == pytest.approx(d)
+    with pytest.raises(ValueError, match="scene_depth"):
+        selection.view_distance(axes, centers, axis_n, center_n, scene_depth=0.0)
 
 
 def test_view_distance_rejects_bad_shapes():

@@ -14,11 +14,11 @@ export function axisAngleDeg(a, b) {
   return Math.acos(c) * 180 / Math.PI;
 }
 
-// Eq. 14: d_k = angle(R_k^z, R_n^z) [rad] + lambda |t_k - t_n| / max(|t_n|, floor)
-export function viewDistance(views, cam, lam, normFloor) {
-  const n = Math.max(norm(cam.center), normFloor);
+// Eq. 14 as selection.view_distance: d_k = angle(R_k^z, R_n^z) [rad] + lambda |t_k - t_n| / D,
+// D the scene's median depth
+export function viewDistance(views, cam, lam, sceneDepth) {
   return views.map((v) => axisAngleDeg(v.axis, cam.axis) * Math.PI / 180
-    + lam * norm(sub(v.center, cam.center)) / n);
+    + lam * norm(sub(v.center, cam.center)) / sceneDepth);
 }
 
 // §5.1.2: sub-region index of each view (-1 outside the angle / distance limits)
@@ -72,7 +72,7 @@ export function viewWeights(d, delta, floor) {
 
 // what IBRModel.render does before the GL passes: selection, max_views, per_view cut, weights
 export function chooseViews(cam, views, s, sel, previous = null) {
-  const dist = viewDistance(views, cam, s.lam, sel.norm_floor);
+  const dist = viewDistance(views, cam, s.lam, s.scene_depth);
   let k = selectViews(cam, views, dist, s, sel.fallback, s.hysteresis ? previous : null);
   if (s.max_views > 0) k = k.slice(0, s.max_views);
   if (s.visibility === "per_view") k = k.slice(0, s.per_view_max);
