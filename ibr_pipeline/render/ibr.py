@@ -152,7 +152,8 @@ class IBRModel:
         self.has_layer1 = any(v.layers[1] is not None for v in self.views)
         # Eq. 14's D: the workspace's (resolve_settings), else the median depth of the views' own
         # surface meshes (a model built from views, not loaded from a workspace)
-        self.scene_depth = self.settings.scene_depth or _median_view_depth(self.views)
+        self.scene_depth = self.settings.scene_depth or median_depth(
+            (v.camera, v.layers[0].vertices) for v in self.views)
         encodings = {lay.encoding for v in self.views for lay in v.layers if lay is not None}
         if len(encodings) != 1:
             raise ValueError(f"IBR model: the layers' textures mix encodings {sorted(encodings)}")
@@ -447,22 +448,19 @@ def stored_settings(ws) -> RenderSettings:
     return s
 
 
-def median_view_depth(camera: Camera, vertices: np.ndarray) -> float | None:
-    """Median z-depth of a view's surface-mesh vertices in its own camera (None: no vertices)."""
-    if not len(vertices):
-        return None
-    return float(np.median((np.asarray(vertices) - camera.center) @ camera.viewing_direction))
-
-
-def scene_depth_of(depths) -> float:
-    """Eq. 14's D from the views' median depths (`median_view_depth`): their median, 1 if none."""
-    z = [d for d in depths if d is not None]
-    d = float(np.median(z)) if z else 0.0
-    return d if d > 0 else 1.0
-
-
-def _median_view_depth(views) -> float:
-    return scene_depth_of(median_view_depth(v.camera, v.layers[0].vertices) for v in views)
+def median_depth(seen) -> float:
+    """Eq. 14's D from (camera, world points) pairs: the median over the cameras of the median
+    z-depth of the points inside each one's frame; 1 when there are none."""
+    z = []
+    for camera, pts in seen:
+        if not len(pts):
+            continue
+        uv, d = camera.project(np.asarray(pts, np.float64))
+        inside = (d > 0) & np.all((uv >= -0.5) & (uv <= [camera.width - 0.5,
+                                                          camera.height - 0.5]), axis=1)
+        if inside.any():
+            z.append(float(np.median(d[inside])))
+    return float(np.median(z)) if z else 1.0
 
 
 def resolve_settings(ws, s: RenderSettings) -> RenderSettings:
@@ -475,12 +473,18 @@ def resolve_settings(ws, s: RenderSettings) -> RenderSettings:
 
 
 def workspace_scene_depth(ws) -> float:
-    """The median scene depth the poses stage measured (global/poses.json), 0 when unknown."""
+    """The median scene depth the poses stage measured (global/poses.json); where it measured
+    none (no scene points), that of the global mesh's vertices in the registered cameras."""
     d = L.poses_report(ws).get("median_scene_depth")
     if d is not None and not (isinstance(d, (int, float)) and d > 0):
         raise InputError(f"{ws.path(L.POSES_REPORT)}: median_scene_depth {d!r} is not a positive "
                          "length (rerun `ibr poses`)")
-    return float(d or 0.0)
+    if d:
+        return float(d)
+    from ..io.mesh import read_ply
+    mesh = ws.path(L.GLOBAL_MESH)
+    pts = read_ply(mesh).vertices if mesh.is_file() else np.zeros((0, 3))
+    return median_depth((c, pts) for c in L.registered_cameras(ws).values())
 
 
 def auto_visibility(ws) -> str:

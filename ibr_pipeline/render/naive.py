@@ -146,6 +146,6 @@ def from_workspace(ws, lam: float = LAMBDA, scene_depth: float = 0.0) -> NaiveWa
     mesh = read_ply(mesh_path)
     if not scene_depth:  # the workspace's, as the renderer resolves it
         from .ibr import workspace_scene_depth
-        scene_depth = workspace_scene_depth(ws) or 1.0
+        scene_depth = workspace_scene_depth(ws)
     return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam, encoding=scene.image_encoding,
                      scene_depth=scene_depth)

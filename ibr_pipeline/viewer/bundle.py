@@ -33,7 +33,7 @@ import os
 import re
 import shutil
 import tempfile
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -176,7 +176,7 @@ def write_bundle(ws, out: Path | None = None, progress: bool = True) -> Path:
     from tqdm import tqdm
 
     from ..render import blend, gl, selection
-    from ..render.ibr import load_view, median_view_depth, scene_depth_of
+    from ..render.ibr import load_view
 
     out = Path(out) if out is not None else ws.path("export/web")
     if not ws.path(L.REGISTERED_CAMERAS).is_file():
@@ -197,13 +197,12 @@ def write_bundle(ws, out: Path | None = None, progress: bool = True) -> Path:
         shutil.rmtree(left, ignore_errors=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
     try:
-        views, depths = [], []
+        views = []
         for i, name in enumerate(tqdm(names, desc="web bundle", unit="view", disable=not progress,
                                       leave=False)):
             key = f"v{i:04d}"
             image = scene.view(name).image
             single = load_view(ws, name, cams[name], image, False, s, enc).layers[0]
-            depths.append(median_view_depth(cams[name], single.vertices))
             two = load_view(ws, name, cams[name], image, True, s, enc).layers
             layers = {"single": {**_write_layer(stage, key, "single", single),
                                  **_write_textures(stage, key, "single", single, enc)}}
@@ -214,8 +213,6 @@ def write_bundle(ws, out: Path | None = None, progress: bool = True) -> Path:
                     layers[lname] = {**_write_layer(stage, key, lname, data),
                                      **_write_textures(stage, key, lname, data, enc)}
             views.append({**_camera_json(name, cams[name]), "key": key, "layers": layers})
-        if not s.scene_depth:  # Eq. 14's D as IBRModel takes it without a poses report
-            s = replace(s, scene_depth=scene_depth_of(depths))
         manifest = {"format": FORMAT, "version": VERSION, "workspace": ws.root.name,
                     "encoding": enc, "settings": asdict(s), "shaders": webgl_shaders(),
                     "near": gl.NEAR_M, "far": gl.FAR_M,

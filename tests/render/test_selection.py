@@ -84,3 +84,21 @@ def test_fallback_when_nothing_within_limits():
     d = selection.view_distance(axes, centers, np.array([0, 0, 1.0]), np.zeros(3))
     sel = selection.select_views(np.eye(3), np.zeros(3), axes, centers, d, fallback=2)
     assert sel == [0, 1]
+
+
+def test_scene_depth_without_a_measured_one_is_the_global_mesh_seen_by_the_cameras(tiny_scene,
+                                                                                  tmp_path):
+    """A workspace whose poses report has no median scene depth (a ground-truth workspace):
+    Eq. 14's D is the median depth of G in its cameras, and the renderer, the naive warp and
+    the web viewer take the same one."""
+    from ibr_pipeline import layout as L
+    from ibr_pipeline.gt_workspace import write_gt_workspace
+    from ibr_pipeline.render.ibr import RenderSettings, resolve_settings, workspace_scene_depth
+    from ibr_pipeline.render.oracle import GroundTruth
+    ws = write_gt_workspace(tiny_scene[0], tmp_path / "ws", "global_mesh")
+    assert L.poses_report(ws).get("median_scene_depth") is None
+    d = workspace_scene_depth(ws)
+    gt = GroundTruth(tiny_scene[0])
+    z = [np.median(g[g > 0]) for g in (gt.geom(n)["depth"] for n in gt.cameras)]
+    assert d == pytest.approx(float(np.median(z)), rel=0.15)  # G is the GT surface, fused
+    assert resolve_settings(ws, RenderSettings()).scene_depth == d
