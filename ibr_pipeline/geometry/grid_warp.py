@@ -13,6 +13,8 @@ linear function of the offsets. Intensities are linear values in [0, 1].
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numba import njit
 
@@ -57,7 +59,44 @@ def apply_warp(p: np.ndarray, offsets: np.ndarray, width: int, height: int) -> n
 
 def arap_matrix(gx: int, gy: int, sx: float, sy: float):
     """Sparse (4 gx gy, 2 L) matrix A with A f = the ARAP residuals of Eq. 5 (two triangles per
-    cell; the rest grid has zero residual). Unknown order: (x0, y0, x1, y1, ...) per vertex."""
+    cell; the rest grid has zero residual). Unknown order: (x0, y0, x1, y1, ...) per vertex.
+    Built once per grid shape and aspect ratio (`_arap_terms`): every grid warp of a
+    decomposition has the same grid, so the matrix is shared, not rebuilt; callers must not
+    modify it."""
+    return _arap_terms(int(gx), int(gy), float(sx / sy))[0]
+
+
+def arap_normal(gx: int, gy: int, sx: float, sy: float):
+    """A^T A (csr, 2L x 2L) of `arap_matrix`, shared the same way."""
+    return _arap_terms(int(gx), int(gy), float(sx / sy))[1]
+
+
+@lru_cache(maxsize=8)
+def _arap_terms(gx: int, gy: int, alpha: float):
+    import scipy.sparse as sp
+
+    n = gx + 1
+    j, i = np.meshgrid(np.arange(gy), np.arange(gx), indexing="ij")
+    v00, v10 = (j * n + i).ravel(), (j * n + i + 1).ravel()
+    v01, v11 = ((j + 1) * n + i).ravel(), ((j + 1) * n + i + 1).ravel()
+    # per cell two triangles (v1, v2, v3): (v10, v00, v01) and (v01, v11, v10), as the reference
+    tri = np.stack([np.stack([v10, v00, v01], 1), np.stack([v01, v11, v10], 1)], 1)  # (cells, 2, 3)
+    Rm = np.array([[0.0, 1.0], [-1.0, 0.0]])
+    eye = np.eye(2)
+    coef = np.stack([eye, alpha * Rm - eye, -alpha * Rm])  # (3 vertices, c, d)
+    cells = len(v00)
+    # entry (cell, triangle, vertex, c, d): row 4 cell + 2 triangle + c, column 2 vertex + d
+    rows = (4 * np.arange(cells)).reshape(-1, 1, 1, 1, 1) + 2 * np.arange(2).reshape(1, 2, 1, 1, 1) \
+        + np.arange(2).reshape(1, 1, 1, 2, 1)
+    cols = 2 * tri[:, :, :, None, None] + np.arange(2).reshape(1, 1, 1, 1, 2)
+    rows, cols, vals = np.broadcast_arrays(rows, cols, coef[None, None])
+    keep = vals != 0.0
+    A = sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(4 * cells, 2 * n * (gy + 1)))
+    return A, (A.T @ A).tocsr()
+
+
+def arap_matrix_reference(gx: int, gy: int, sx: float, sy: float):
+    """`arap_matrix` built entry by entry, in loops over the cells: the reference."""
     import scipy.sparse as sp
 
     alpha = sx / sy  # Eq. 5: grid aspect ratio
@@ -113,30 +152,69 @@ def gauss_newton_terms_reference(w: np.ndarray, idx: np.ndarray, gxs: np.ndarray
     return (J.T @ J).tocsr(), J.T @ res.reshape(-1)
 
 
-def gauss_newton_terms(w: np.ndarray, idx: np.ndarray, gxs: np.ndarray, gys: np.ndarray,
-                       res: np.ndarray, L: int):
-    """`gauss_newton_terms_reference` without forming J: a pixel's rows are theta (x) g_c over
-    the channels c, so its share of J^T J is (theta theta^T) (x) (sum_c g_c g_c^T), a 4 x 4 by
-    2 x 2 Kronecker product; a numba kernel sums those 8 x 8 blocks per grid cell (and J^T res),
-    then the cells' blocks are placed in the (2L, 2L) matrix."""
+@lru_cache(maxsize=8)
+def _cell_pattern(gx: int, gy: int):
+    """The sparsity of Eq. 5's Gauss-Newton matrix: every unknown coupled to those of the cells
+    it is a corner of (J^T J, A^T A and the identity all lie in it). Returns its CSC structure
+    (indptr, indices; rows sorted), the sorted keys column * 2L + row of its entries, each
+    cell's first vertex (cells,) and the data position of each entry of each cell's 8 x 8 block
+    (cells, 64), unknowns ordered as in `_gn_cells`."""
+    n, N = gx + 1, 2 * (gx + 1) * (gy + 1)
+    j, i = np.meshgrid(np.arange(gy), np.arange(gx), indexing="ij")
+    first = (j * n + i).ravel()
+    vid = np.stack([first, first + 1, first + n, first + n + 1], 1)  # bilinear_weights' order
+    r = (2 * vid[:, :, None] + np.arange(2)).reshape(-1, 8)
+    rows, cols = np.broadcast_arrays(r[:, :, None], r[:, None, :])
+    entry = (cols * N + rows).reshape(len(first), 64)
+    keys = np.unique(entry)
+    indptr = np.searchsorted(keys // N, np.arange(N + 1)).astype(np.int32)
+    return indptr, (keys % N).astype(np.int32), keys, first, np.searchsorted(keys, entry)
+
+
+def _pattern_data(M, keys: np.ndarray, N: int) -> np.ndarray:
+    """The entries of sparse M (N, N) as data over `_cell_pattern`'s structure (M within it)."""
+    M = M.tocoo()
+    k = M.col.astype(np.int64) * N + M.row
+    pos = np.searchsorted(keys, k)
+    if np.any(pos >= len(keys)) or np.any(keys[np.minimum(pos, len(keys) - 1)] != k):
+        raise ValueError("matrix has entries outside the grid cells' pattern")
+    return np.bincount(pos, weights=M.data, minlength=len(keys))
+
+
+@lru_cache(maxsize=8)
+def _regulariser_data(gx: int, gy: int, alpha: float, w_r: float, w_a: float) -> np.ndarray:
+    """w_r I + w_a A^T A (Eq. 5's regulariser and ARAP term) as data over `_cell_pattern`."""
+    import scipy.sparse as sp
+    N = 2 * (gx + 1) * (gy + 1)
+    M = w_r * sp.identity(N, format="csr") + w_a * _arap_terms(gx, gy, alpha)[1]
+    return _pattern_data(M, _cell_pattern(gx, gy)[2], N)
+
+
+def gauss_newton_system(w: np.ndarray, idx: np.ndarray, gxs: np.ndarray, gys: np.ndarray,
+                        res: np.ndarray, gx: int, gy: int, sx: float, sy: float, w_r: float,
+                        w_a: float):
+    """Eq. 5's Gauss-Newton matrix J^T J + w_r I + w_a A^T A (CSC, 2L x 2L) and J^T res (2L,),
+    without forming J: a pixel's rows are theta (x) g_c over the channels c, so its share of
+    J^T J is (theta theta^T) (x) (sum_c g_c g_c^T), a 4 x 4 by 2 x 2 Kronecker product; a numba
+    kernel sums those 8 x 8 blocks per grid cell (and J^T res), and they are added straight into
+    the grid's fixed pattern (`_cell_pattern`): assembling the matrix by sparse additions and
+    format conversions was ~5 % of a 120-view reflection stage. idx, w: `bilinear_weights` of
+    the N positions; gxs, gys, res: (N, C)."""
     import scipy.sparse as sp
     N, C = res.shape
+    L = (gx + 1) * (gy + 1)
     if idx.shape != (N, 4) or w.shape != (N, 4) or gxs.shape != (N, C) or gys.shape != (N, C):
         raise ValueError(f"need idx, w (N, 4), gxs, gys, res (N, C); got {idx.shape}, "
                          f"{w.shape}, {gxs.shape}, {gys.shape}, {res.shape}")
-    blocks, Jtr, seen = _gn_cells(np.ascontiguousarray(w, np.float64),
-                                  np.ascontiguousarray(idx, np.int64),
-                                  np.ascontiguousarray(gxs, np.float64),
-                                  np.ascontiguousarray(gys, np.float64),
-                                  np.ascontiguousarray(res, np.float64), L)
-    cells = np.flatnonzero(seen >= 0)
-    vid = idx[seen[cells]]  # (cells, 4): the cell's vertices, from one of its pixels
-    r = (2 * vid[:, :, None] + np.arange(2)).reshape(len(cells), 8)  # unknowns of the block
-    rows = np.repeat(r[:, :, None], 8, axis=2)
-    cols = np.repeat(r[:, None, :], 8, axis=1)
-    JtJ = sp.csr_matrix((blocks[cells].reshape(-1), (rows.reshape(-1), cols.reshape(-1))),
-                        shape=(2 * L, 2 * L))
-    return JtJ, Jtr
+    blocks, Jtr, _ = _gn_cells(np.ascontiguousarray(w, np.float64),
+                               np.ascontiguousarray(idx, np.int64),
+                               np.ascontiguousarray(gxs, np.float64),
+                               np.ascontiguousarray(gys, np.float64),
+                               np.ascontiguousarray(res, np.float64), L)
+    indptr, indices, keys, first, pos = _cell_pattern(int(gx), int(gy))
+    data = _regulariser_data(int(gx), int(gy), float(sx / sy), float(w_r), float(w_a)) \
+        + np.bincount(pos.ravel(), weights=blocks[first].reshape(-1), minlength=len(keys))
+    return sp.csc_matrix((data, indices, indptr), shape=(2 * L, 2 * L)), Jtr
 
 
 @njit(cache=True)
@@ -179,7 +257,8 @@ def solve_grid_warp(ref: np.ndarray, nb: np.ndarray, flow: np.ndarray, valid: np
     ref: I_k (H, W, C); nb: I_k' (H', W', C); flow: w_k'(u, M0) (H, W, 2) positions in the
     neighbour image; valid: (H, W) pixels that take part. Returns the offsets (gy+1, gx+1, 2) and
     the energy before each iteration and after the last (len iterations + 1). `reference`:
-    the normal equations from the formed Jacobian (gauss_newton_terms_reference).
+    the normal equations from the formed Jacobian (gauss_newton_terms_reference), the ARAP
+    matrix from its loops and SuperLU's default ordering.
     """
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
@@ -198,8 +277,11 @@ def solve_grid_warp(ref: np.ndarray, nb: np.ndarray, flow: np.ndarray, valid: np
     L = (gx + 1) * (gy + 1)
     f = np.zeros((L, 2))
     _, sx, sy = grid_vertices(Wn, Hn, gx, gy)
-    A = arap_matrix(gx, gy, sx, sy)
-    AtA = (A.T @ A).tocsr()
+    if reference:
+        A = arap_matrix_reference(gx, gy, sx, sy)
+        AtA = (A.T @ A).tocsr()
+    else:
+        AtA = arap_normal(gx, gy, sx, sy)
     sel = np.asarray(valid, bool) & np.all(np.isfinite(flow), axis=2)
     p = flow[sel]
     target = ref[sel]
@@ -224,10 +306,15 @@ def solve_grid_warp(ref: np.ndarray, nb: np.ndarray, flow: np.ndarray, valid: np
         if it == iterations:
             break
         gxs, gys = _sample(gxi, q), _sample(gyi, q)  # (N, C)
-        terms = gauss_newton_terms_reference if reference else gauss_newton_terms
-        JtJ, Jtr = terms(w, idx, gxs, gys, res, L)
         fv = f.reshape(-1)
-        lhs = (JtJ + w_r * sp.identity(2 * L) + w_a * AtA).tocsc()
-        rhs = -(Jtr + w_r * fv + w_a * (AtA @ fv))
-        f = (fv + spsolve(lhs, rhs)).reshape(L, 2)
+        if reference:
+            JtJ, Jtr = gauss_newton_terms_reference(w, idx, gxs, gys, res, L)
+            step = spsolve((JtJ + w_r * sp.identity(2 * L) + w_a * AtA).tocsc(),
+                           -(Jtr + w_r * fv + w_a * (AtA @ fv)))
+        else:
+            lhs, Jtr = gauss_newton_system(w, idx, gxs, gys, res, gx, gy, sx, sy, w_r, w_a)
+            # lhs is symmetric positive definite: a minimum-degree ordering of A^T + A gives
+            # SuperLU less fill than its default column ordering (the same step up to rounding)
+            step = spsolve(lhs, -(Jtr + w_r * fv + w_a * (AtA @ fv)), permc_spec="MMD_AT_PLUS_A")
+        f = (fv + step).reshape(L, 2)
     return f.reshape(gy + 1, gx + 1, 2), energies

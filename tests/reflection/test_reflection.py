@@ -56,18 +56,45 @@ def test_grid_warp_reduces_a_smooth_misalignment():
     assert np.allclose(offs, offs_ref, atol=1e-9) and np.allclose(energies, energies_ref)
 
 
+def test_arap_matrix_matches_its_reference_and_vanishes_on_similarities():
+    """Eq. 5's ARAP term (Igarashi et al. 2005): zero for a rotation + scale of the rest grid,
+    not for a shear; the vectorised, shared matrix equals the one built in loops."""
+    from ibr_pipeline.geometry.grid_warp import (arap_matrix, arap_matrix_reference, arap_normal,
+                                                 grid_vertices)
+    gx, gy, W, H = 7, 5, 22, 11
+    V, sx, sy = grid_vertices(W, H, gx, gy)
+    A = arap_matrix(gx, gy, sx, sy)
+    assert A.shape == (4 * gx * gy, 2 * (gx + 1) * (gy + 1))
+    assert (A != arap_matrix_reference(gx, gy, sx, sy)).nnz == 0
+    assert abs(arap_normal(gx, gy, sx, sy) - (A.T @ A)).max() < 1e-12
+    P = V.reshape(-1, 2)
+    c, s = np.cos(0.3), np.sin(0.3)
+    S = 1.4 * np.array([[c, -s], [s, c]])
+    similar = P @ S.T + [2.0, -1.0] - P
+    assert np.abs(A @ similar.reshape(-1)).max() < 1e-9
+    shear = P @ np.array([[1.0, 0.4], [0.0, 1.0]]).T - P
+    assert np.abs(A @ shear.reshape(-1)).max() > 0.1
+
+
 def test_grid_warp_normal_equations_match_the_formed_jacobian():
-    from ibr_pipeline.geometry.grid_warp import (bilinear_weights, gauss_newton_terms,
-                                                 gauss_newton_terms_reference)
+    import scipy.sparse as sp
+
+    from ibr_pipeline.geometry.grid_warp import (arap_matrix_reference, bilinear_weights,
+                                                 gauss_newton_system, gauss_newton_terms_reference)
     rng = np.random.default_rng(2)
     W, H, gx, gy, C = 64, 48, 8, 6, 3
+    sx, sy = (W - 1) / gx, (H - 1) / gy
     p = rng.random((3000, 2)) * [W - 1, H - 1]
     p[:5] = [[0, 0], [W - 1, H - 1], [W - 1, 0], [-3, 10], [10, 99]]  # corners, clamped points
+    p[5:400] = rng.random((395, 2)) * [20, 20]  # crowd one corner: cells without pixels remain
+    p = p[(p[:, 0] < 30) | (p[:, 1] < 30)]
     idx, w = bilinear_weights(p, W, H, gx, gy)
-    g1, g2, r = (rng.standard_normal((3000, C)) for _ in range(3))
+    g1, g2, r = (rng.standard_normal((len(p), C)) for _ in range(3))
     L = (gx + 1) * (gy + 1)
-    A, b = gauss_newton_terms(w, idx, g1, g2, r, L)
-    A0, b0 = gauss_newton_terms_reference(w, idx, g1, g2, r, L)
+    A, b = gauss_newton_system(w, idx, g1, g2, r, gx, gy, sx, sy, 1.2, 0.5)
+    JtJ, b0 = gauss_newton_terms_reference(w, idx, g1, g2, r, L)
+    Ar = arap_matrix_reference(gx, gy, sx, sy)
+    A0 = JtJ + 1.2 * sp.identity(2 * L) + 0.5 * (Ar.T @ Ar)
     assert A.shape == A0.shape == (2 * L, 2 * L)
     assert abs(A - A0).max() < 1e-9 * abs(A0).max() and np.allclose(b, b0, atol=1e-9)
 
