@@ -33,7 +33,7 @@ def block_pcg_reference(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray,
     F = free.astype(np.float64)
     xb = x0 * (1 - F)
     rhs = F * (g - H @ xb)
-    dinv = 1.0 / np.maximum(H.diagonal(), 1e-12)[:, None]
+    dinv = 1.0 / np.maximum(H.diagonal().astype(np.float64), 1e-12)[:, None]
     x = x0 * F
 
     def mv(v):
@@ -66,13 +66,15 @@ def block_pcg_reference(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray,
 
 def block_pcg(H, g: np.ndarray, x0: np.ndarray, free: np.ndarray, iterations: int = 150,
               tol: float = 1e-6, info: dict | None = None) -> np.ndarray:
-    """`block_pcg_reference` in numba kernels (the same iterates up to rounding)."""
+    """`block_pcg_reference` in numba kernels (the same iterates up to rounding). H's entries
+    are read in H's precision (float32 or float64), everything else is float64."""
     import scipy.sparse as sp
     _check(H, g, x0, free)
     Hc = sp.csr_matrix(H)
     if not Hc.has_sorted_indices:
         Hc = Hc.sorted_indices()
-    x, done = _pcg_kernel(_i32(Hc.indptr), _i32(Hc.indices), _f64(Hc.data),
+    data = np.ascontiguousarray(Hc.data, np.float32 if Hc.dtype == np.float32 else np.float64)
+    x, done = _pcg_kernel(_i32(Hc.indptr), _i32(Hc.indices), data,
                           _f64(Hc.diagonal()), _f64(g), _f64(x0),
                           np.ascontiguousarray(free, np.bool_), int(iterations), float(tol))
     if info is not None:

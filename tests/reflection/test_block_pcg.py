@@ -47,6 +47,25 @@ def test_the_kernel_follows_the_reference_iterate_by_iterate(channels, iteration
         assert np.abs(b - x0)[free].max() > 1e-3
 
 
+def test_a_float32_matrix_is_solved_alike_by_both_and_close_to_float64():
+    """The image step stores H in float32 (decompose.matrix_precision): kernel and reference
+    read the same rounded entries, so they still follow each other iterate by iterate, and the
+    solution moves only by the rounding of H."""
+    H, g = _problem(200, 3, seed=5)
+    H32 = H.astype(np.float32)
+    rng = np.random.default_rng(6)
+    free = rng.random((200, 3)) > 0.2
+    x0 = rng.random((200, 3))
+    for its in (5, 300):
+        a = block_pcg_reference(H32, g, x0, free, iterations=its, tol=1e-12)
+        b = block_pcg(H32, g, x0, free, iterations=its, tol=1e-12)
+        assert a.dtype == b.dtype == np.float64
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-12)
+    x64 = block_pcg(H, g, x0, free, iterations=300, tol=1e-12)
+    d = np.abs(b - x64).max() / np.abs(x64).max()
+    assert 0 < d < 1e-5, d  # rounded entries: not the same matrix, nearly the same solution
+
+
 def test_shapes_are_checked():
     H, g = _problem()
     with pytest.raises(ValueError, match="need H"):
