@@ -161,7 +161,20 @@ def bilinear_cells(pos: np.ndarray, H: int, W: int):
 
 
 def sample_bilinear(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """(N, C) bilinear samples of an (H, W, C) image at (N, 2) positions (clamped)."""
+    """(N, C) bilinear samples of an (H, W, C) image at (N, 2) positions (clamped). Float64
+    positions into a float32/float64 colour image go through the numba kernel (the same bits);
+    other inputs through `sample_bilinear_np`."""
+    img, pos = np.asarray(img), np.asarray(pos)
+    if (img.ndim == 3 and img.shape[0] > 0 and img.shape[1] > 0
+            and img.dtype in (np.float32, np.float64) and pos.dtype == np.float64
+            and pos.ndim == 2 and pos.shape[1] == 2 and np.isfinite(pos).all()):
+        from .bilinear_nb import sample_bilinear_nb
+        return sample_bilinear_nb(np.ascontiguousarray(img), np.ascontiguousarray(pos))
+    return sample_bilinear_np(img, pos)
+
+
+def sample_bilinear_np(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """`sample_bilinear` in numpy: the reference, and the path for any other input."""
     x0, y0, x1, y1, ax, ay = bilinear_cells(pos, *img.shape[:2])
     return ((1 - ay) * ((1 - ax) * img[y0, x0] + ax * img[y0, x1])
             + ay * ((1 - ax) * img[y1, x0] + ax * img[y1, x1]))
