@@ -206,11 +206,11 @@ def gauss_newton_system(w: np.ndarray, idx: np.ndarray, gxs: np.ndarray, gys: np
     if idx.shape != (N, 4) or w.shape != (N, 4) or gxs.shape != (N, C) or gys.shape != (N, C):
         raise ValueError(f"need idx, w (N, 4), gxs, gys, res (N, C); got {idx.shape}, "
                          f"{w.shape}, {gxs.shape}, {gys.shape}, {res.shape}")
-    blocks, Jtr, _ = _gn_cells(np.ascontiguousarray(w, np.float64),
-                               np.ascontiguousarray(idx, np.int64),
-                               np.ascontiguousarray(gxs, np.float64),
-                               np.ascontiguousarray(gys, np.float64),
-                               np.ascontiguousarray(res, np.float64), L)
+    blocks, Jtr = _gn_cells(np.ascontiguousarray(w, np.float64),
+                            np.ascontiguousarray(idx, np.int64),
+                            np.ascontiguousarray(gxs, np.float64),
+                            np.ascontiguousarray(gys, np.float64),
+                            np.ascontiguousarray(res, np.float64), L)
     indptr, indices, keys, first, pos = _cell_pattern(int(gx), int(gy))
     data = _regulariser_data(int(gx), int(gy), float(sx / sy), float(w_r), float(w_a)) \
         + np.bincount(pos.ravel(), weights=blocks[first].reshape(-1), minlength=len(keys))
@@ -220,11 +220,10 @@ def gauss_newton_system(w: np.ndarray, idx: np.ndarray, gxs: np.ndarray, gys: np
 @njit(cache=True)
 def _gn_cells(w, idx, gxs, gys, res, L):
     """Per grid cell (keyed by its first vertex): the 8 x 8 block of J^T J, in the unknown order
-    (vertex k of the cell, axis a) -> 2k + a; J^T res (2L,); and one pixel of each cell (-1 none)."""
+    (vertex k of the cell, axis a) -> 2k + a (zero for cells without pixels); and J^T res (2L,)."""
     N, C = res.shape
     blocks = np.zeros((L, 8, 8))
     Jtr = np.zeros(2 * L)
-    seen = -np.ones(L, np.int64)
     for n in range(N):
         g00 = g01 = g11 = b0 = b1 = 0.0
         for c in range(C):
@@ -235,7 +234,6 @@ def _gn_cells(w, idx, gxs, gys, res, L):
             b0 += gx * rr
             b1 += gy * rr
         cell = idx[n, 0]
-        seen[cell] = n
         for k in range(4):
             wk = w[n, k]
             Jtr[2 * idx[n, k]] += wk * b0
@@ -246,7 +244,7 @@ def _gn_cells(w, idx, gxs, gys, res, L):
                 blocks[cell, 2 * k, 2 * m + 1] += ww * g01
                 blocks[cell, 2 * k + 1, 2 * m] += ww * g01
                 blocks[cell, 2 * k + 1, 2 * m + 1] += ww * g11
-    return blocks, Jtr, seen
+    return blocks, Jtr
 
 
 def solve_grid_warp(ref: np.ndarray, nb: np.ndarray, flow: np.ndarray, valid: np.ndarray, *,
