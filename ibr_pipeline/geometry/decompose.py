@@ -66,9 +66,9 @@ class DecomposeOptions(Options):
     resolve_iterations: int = param(15, "CG iterations of each warm-started active-set re-solve",
                                     min=1, max=10000)
     matrix_precision: str = param("float32", "storage of the image step's matrix H: float32 "
-                                  "rounds its entries (~6e-8 relative) and the CG's mat-vecs, "
-                                  "which stream H from memory, run ~1.6x faster; the iterates "
-                                  "stay float64", choices=("float32", "float64"))
+                                  "rounds its entries (~6e-8 relative) and halves the bytes the "
+                                  "CG's mat-vecs stream for them; the iterates stay float64",
+                                  choices=("float32", "float64"))
     optimise_pose: bool = param(True, "refine the rigid transform (R, T) of M1 (Eq. 7)")
     pose_iterations: int = param(5, "Gauss-Newton iterations per (R, T) step", min=0, max=1000)
     pose_samples: int = param(20000, "data points of the (R, T) steps (deterministic stride)",
