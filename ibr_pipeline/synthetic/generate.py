@@ -227,7 +227,7 @@ def _realistic_task(args) -> dict:
     from ..io.images import write_image
     from . import tasks
     from .realistic import degrade, distortion_padding
-    from .writers import compose_8bit, save_npz
+    from .writers import GEOM_COMPRESSION, compose_8bit, save_npz
 
     kind, i, name, cam, out, seed, gt_layers, model, gain = args
     if kind not in ("capture", "test"):
@@ -249,7 +249,7 @@ def _realistic_task(args) -> dict:
              "saturated": float((photo == 255).any(axis=2).mean())}
     if kind == "capture":
         write_image(out / "images" / name, photo)
-        save_npz(out / "gt" / "geom" / f"{stem}.npz", "lzma", **tasks._geom(gt))
+        save_npz(out / "gt" / "geom" / f"{stem}.npz", GEOM_COMPRESSION, **tasks._geom(gt))
         if gt_layers:
             write_image(out / "gt" / "I0" / f"{stem}.png", q0)
             write_image(out / "gt" / "I1" / f"{stem}.png", q1)
@@ -257,7 +257,7 @@ def _realistic_task(args) -> dict:
     else:
         write_image(out / "gt" / "test" / "images" / name, photo)
         write_image(out / "gt" / "test" / "linear" / name, img)
-        save_npz(out / "gt" / "test" / "geom" / f"{stem}.npz", "lzma", **tasks._geom(gt))
+        save_npz(out / "gt" / "test" / "geom" / f"{stem}.npz", GEOM_COMPRESSION, **tasks._geom(gt))
     return stats
 
 

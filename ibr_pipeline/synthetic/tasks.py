@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.images import write_depth_png, write_image
-from .writers import compose_8bit, round_depth, save_npz
+from .writers import GEOM_COMPRESSION, compose_8bit, round_depth, save_npz
 
 log = logging.getLogger("ibr_pipeline.synthetic")
 _TRACER = None  # per-process tracer, built once by _init
@@ -53,7 +53,7 @@ def _run(args) -> dict:
     stats = {"kind": kind, "eq3_err": eq3, "reflective": float((r["beta"] > 0).mean())}
     if kind == "capture":
         write_image(out / "images" / name, img)
-        save_npz(out / "gt" / "geom" / f"{stem}.npz", "lzma", **_geom(r))
+        save_npz(out / "gt" / "geom" / f"{stem}.npz", GEOM_COMPRESSION, **_geom(r))
         if gt_layers:
             write_image(out / "gt" / "I0" / f"{stem}.png", q0)
             write_image(out / "gt" / "I1" / f"{stem}.png", q1)
@@ -66,7 +66,7 @@ def _run(args) -> dict:
         write_depth_png(out / "depth" / f"{stem}.png", noisy)
     elif kind == "test":
         write_image(out / "gt" / "test" / "images" / name, img)
-        save_npz(out / "gt" / "test" / "geom" / f"{stem}.npz", "lzma", **_geom(r))
+        save_npz(out / "gt" / "test" / "geom" / f"{stem}.npz", GEOM_COMPRESSION, **_geom(r))
     elif kind == "fly":
         write_image(out / "gt" / "flythrough" / "images" / name, img)
     return stats
