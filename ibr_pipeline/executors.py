@@ -45,7 +45,9 @@ class Executor:
 
 
 # thread-pool sizes every native library reads from the environment when it loads
-_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+# (LP_NUM_THREADS: Mesa llvmpipe's rasteriser threads, read when a GL context is created)
+_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+               "LP_NUM_THREADS")
 
 
 def worker_threads(jobs: int) -> int:
@@ -94,7 +96,9 @@ class LocalExecutor(Executor):
         self.name = "in-process" if jobs == 1 else f"process pool ({jobs} workers)"
         self._pool: ProcessPoolExecutor | None = None
 
-    def map_unordered(self, fn, argsets):
+    def map_unordered(self, fn, argsets, in_order: bool = False):
+        """`in_order`: hand the tasks out in the given order (a caller that sorted them, largest
+        first), not in `block_order`."""
         if self.jobs == 1 or len(argsets) <= 1:
             for i, args in enumerate(argsets):
                 try:
@@ -106,8 +110,8 @@ class LocalExecutor(Executor):
             self._pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
                                              initializer=limit_threads,
                                              initargs=(worker_threads(self.jobs),))
-        futures = {self._pool.submit(fn, *argsets[i]): i
-                   for i in block_order(len(argsets), self.jobs)}
+        order = range(len(argsets)) if in_order else block_order(len(argsets), self.jobs)
+        futures = {self._pool.submit(fn, *argsets[i]): i for i in order}
         try:
             for fut in as_completed(futures):
                 exc = fut.exception()

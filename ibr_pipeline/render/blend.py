@@ -6,6 +6,8 @@ also *computed* here once per view and uploaded as the texture alpha, as the pap
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 COST_MARGIN = 0.17     # §5.1.3: keep points whose IBR cost is within 0.17 of the smallest
@@ -55,12 +57,20 @@ def _ramp(dist: np.ndarray, width: float) -> np.ndarray:
 
 
 def feather_weight(height: int, width: int, feather_px: float = FEATHER_PX) -> np.ndarray:
-    """§5.1.4 feathering: weight rising smoothly from 0 at the image border to 1 at feather_px."""
+    """§5.1.4 feathering: weight rising smoothly from 0 at the image border to 1 at feather_px.
+    Read-only: one array per size, shared by every view of that size (a model loads hundreds)."""
     if height <= 0 or width <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
+    return _feather(int(height), int(width), float(feather_px))
+
+
+@functools.lru_cache(maxsize=8)
+def _feather(height: int, width: int, feather_px: float) -> np.ndarray:
     v = np.minimum(np.arange(height), np.arange(height)[::-1]) + 0.5
     u = np.minimum(np.arange(width), np.arange(width)[::-1]) + 0.5
-    return _ramp(np.minimum(v[:, None], u[None, :]), feather_px).astype(np.float32)
+    w = _ramp(np.minimum(v[:, None], u[None, :]), feather_px).astype(np.float32)
+    w.setflags(write=False)
+    return w
 
 
 def edge_decay(edges: np.ndarray, decay_px: float = EDGE_DECAY_PX) -> np.ndarray:

@@ -100,56 +100,64 @@ def outputs(ctx: StageContext) -> list[str]:
 
 
 def run(ctx: StageContext) -> None:
+    """Each set is one task: with `--jobs N` the sets render in N worker processes (each loads the
+    models it needs once), largest first; the records are written here, in set order."""
     import numpy as np
     from tqdm import tqdm
 
-    from ..io.images import write_image
+    from ..executors import LocalExecutor
     from ..render.gl import renderer_name
-    from ..render.ibr import IBRModel
+    from ..render.ibr import resolve_settings
+    from ..render.sets import reflective_views, release_models, render_set
     from ..scene import cameras_to_json
 
     ws = ctx.ws
     progress = ctx.progress and log.isEnabledFor(logging.INFO)
-    settings = ctx.config.renderer
+    settings = resolve_settings(ws, ctx.config.renderer)
     sets = render_sets(ctx)
-    models = {True: IBRModel.load(ws, layers=True, settings=settings, progress=progress)}
-    two = sum(v.layers[1] is not None for v in models[True].views)
-    if two and any(not spec.get("layers", True) for spec in sets.values()):
-        models[False] = IBRModel.load(ws, layers=False, settings=settings, progress=progress)
+    names = registered_views(ctx)
+    two = len(reflective_views(ws, names))
     # what `supersample` renders its training pairs with, so that DSRNet learns these renders
-    ws.write_json(L.RENDER_SETTINGS, dataclasses.asdict(models[True].settings))
-    log.info("render_views: %d views (%d with a reflection layer), GL: %s", len(models[True].views),
-             two, renderer_name())
+    ws.write_json(L.RENDER_SETTINGS, dataclasses.asdict(settings))
+    log.info("render_views: %d views (%d with a reflection layer), GL: %s", len(names), two,
+             renderer_name())
+    # no view has a second layer: the single-layer model is the same model, so `<set>_single`
+    # is a copy of `<set>`'s renders
+    copies = [s for s, spec in sets.items() if not spec.get("layers", True) and not two]
+    todo = sorted((s for s in sets if s not in copies), key=lambda s: -len(sets[s]["cameras"]))
+    jobs = min(max(1, ctx.jobs), len(todo)) if todo else 1
+    args = [(ws, sets[s]["cameras"], sets[s]["exclude"],
+             [L.render_file(s, f"{i:04d}.png") for i in range(len(sets[s]["cameras"]))],
+             bool(sets[s].get("layers", True)), settings, ctx.scene.image_encoding,
+             s.startswith(("fly", "tour")), ctx.fingerprint,
+             f"render {s}" if progress and jobs == 1 else None) for s in todo]
+    results = {}
+    bar = tqdm(total=sum(len(sets[s]["cameras"]) for s in todo), desc="render sets",
+               unit="frame", disable=not progress or jobs == 1, leave=False)
+    try:
+        with LocalExecutor(jobs) as ex:
+            for i, frames, exc in ex.map_unordered(render_set, args, in_order=True):
+                if exc is not None:
+                    raise exc
+                results[todo[i]] = frames
+                bar.update(len(frames))
+    finally:
+        bar.close()
+        release_models()
     for s, spec in sets.items():
-        if not spec.get("layers", True) and not two:
-            # no view has a second layer: the single-layer model is the same model, so its
-            # renders are the layered set's (rendered first: `<set>` precedes `<set>_single`)
+        if s in copies:
             _copy_set(ws, s.removesuffix("_single"), s, len(spec["cameras"]))
             continue
-        model = models[spec.get("layers", True)]
-        frames, prev = [], None
-        sequential = s.startswith(("fly", "tour"))
-        for i, ((name, cam), excl) in enumerate(tqdm(list(zip(spec["cameras"], spec["exclude"])),
-                                                     desc=f"render {s}", unit="frame",
-                                                     disable=not progress, leave=False)):
-            f = model.render(cam, exclude=() if excl is None else (excl,),
-                             previous=prev if sequential else None)
-            prev = f
-            write_image(ws.path(L.render_file(s, f"{i:04d}.png")), f.color, ctx.scene.image_encoding)
-            frames.append({"index": i, "name": name, "ms": round(f.ms, 3),
-                           **{k: round(v, 3) for k, v in f.timings.items()},
-                           "selected": f.selected, "holes": round(float(1 - f.covered.mean()), 5)})
+        frames = results[s]
         ms = [f["ms"] for f in frames]
         ws.write_json(L.render_file(s, "timings.json"), {
             "set": s, "source": spec["source"], "layers": bool(spec.get("layers", True)) and two > 0,
             "size": list(spec["cameras"][0][1].size) if frames else None,
             "renderer": renderer_name(), "median_ms": float(np.median(ms)) if ms else None,
-            "frames": frames})
+            "frames": frames, "processes": jobs})
         ws.write_text(L.render_file(s, "cameras.json"), cameras_to_json(dict(spec["cameras"])))
         log.info("render_views: %-12s %3d frames, median %.1f ms/frame", s, len(frames),
                  float(np.median(ms)) if ms else float("nan"))
-    for m in models.values():
-        m.release()
 
 
 def _copy_set(ws, src: str, dst: str, n: int) -> None:

@@ -65,6 +65,44 @@ def test_evaluate_in_workers_gives_the_same_figures(gt_ws):
     assert figures(two) == figures(one)
 
 
+def test_render_views_in_workers_gives_the_same_renders(gt_ws):
+    """--jobs 2 renders the sets in two worker processes (the single-layer model built from the
+    layered one there): every frame's pixels, selected views and holes are the in-process run's."""
+    def frames():
+        out = {}
+        for d in sorted(p for p in (gt_ws / "renders").iterdir() if p.is_dir()):
+            t = json.loads((d / "timings.json").read_text())
+            out[d.name] = ([(f["name"], f["selected"], f["holes"]) for f in t["frames"]],
+                           [read_image(p) for p in sorted(d.glob("*.png"))])
+        return out
+    assert main(["-q", "render_views", str(gt_ws), "--no-progress", "--force"]) == 0
+    one = frames()
+    assert main(["-q", "render_views", str(gt_ws), "--no-progress", "--force", "--jobs", "2"]) == 0
+    two = frames()
+    assert sorted(one) == sorted(two) and "test_single" in one
+    assert json.loads((gt_ws / "renders" / "test" / "timings.json").read_text())["processes"] == 2
+    for s in one:
+        assert one[s][0] == two[s][0], s
+        assert all(np.array_equal(a, b) for a, b in zip(one[s][1], two[s][1])), s
+
+
+def test_single_layer_model_from_the_layered_one_is_the_loaded_one(gt_ws):
+    from ibr_pipeline.render.ibr import IBRModel
+    from ibr_pipeline.render.sets import single_layer_of
+    ws = Workspace(gt_ws)
+    layered = IBRModel.load(ws, layers=True)
+    loaded = IBRModel.load(ws, layers=False)
+    built = single_layer_of(ws, layered)
+    assert layered.has_layer1 and not built.has_layer1 and built.names == loaded.names
+    assert any(a is not b for a, b in zip(built.views, layered.views))  # reflective views reloaded
+    for a, b in zip(built.views, loaded.views):
+        assert a.layers[1] is None and b.layers[1] is None
+        for f in ("vertices", "faces", "rgb", "alpha"):
+            assert np.array_equal(getattr(a.layers[0], f), getattr(b.layers[0], f)), (a.name, f)
+    for m in (layered, loaded, built):
+        m.release()
+
+
 def test_ibr_render_command(gt_ws, tmp_path, capsys):
     out = tmp_path / "fly"
     assert main(["render", str(gt_ws), "--path", "fly", "--out", str(out), "--no-progress"]) == 0
