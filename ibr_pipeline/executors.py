@@ -106,10 +106,7 @@ class LocalExecutor(Executor):
                 except Exception as e:  # reported per task; KeyboardInterrupt still stops the run
                     yield i, None, e
             return
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=limit_threads,
-                                             initargs=(worker_threads(self.jobs),))
+        self._ensure_pool()
         order = range(len(argsets)) if in_order else block_order(len(argsets), self.jobs)
         futures = {self._pool.submit(fn, *argsets[i]): i for i in order}
         try:
@@ -124,6 +121,26 @@ class LocalExecutor(Executor):
         finally:
             for fut in futures:
                 fut.cancel()
+
+    def submit(self, fn, *args):
+        """One task, started now (a Future): a caller can go on producing the next task's inputs
+        while workers run this one. jobs=1 runs it here, before returning a finished Future."""
+        from concurrent.futures import Future
+        if self.jobs == 1:
+            fut: Future = Future()
+            try:
+                fut.set_result(fn(*args))
+            except Exception as e:
+                fut.set_exception(e)
+            return fut
+        return self._ensure_pool().submit(fn, *args)
+
+    def _ensure_pool(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=limit_threads,
+                                             initargs=(worker_threads(self.jobs),))
+        return self._pool
 
     def close(self):
         if self._pool is not None:

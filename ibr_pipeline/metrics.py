@@ -12,7 +12,6 @@ mask. Every function returns a plain float; an empty mask gives NaN (no pixels, 
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 
 def _check(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -40,6 +39,21 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float("inf") if mse == 0 else float(10.0 * np.log10(1.0 / mse))
 
 
+def gaussian_window(z: np.ndarray, sigma: float = 1.5, truncate: float = 3.5) -> np.ndarray:
+    """scipy.ndimage.gaussian_filter(z, sigma, truncate=truncate, mode="reflect") of a 2-D float64
+    map, as OpenCV's separable filter (the same normalised taps and border; equal to 1e-15, ~3x
+    faster: SSIM is most of an evaluation's time after FLIP)."""
+    import cv2
+    z = np.asarray(z, dtype=np.float64)
+    if z.ndim != 2:
+        raise ValueError(f"gaussian_window: expected a 2-D map, got {z.shape}")
+    r = int(truncate * float(sigma) + 0.5)   # scipy's radius
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    k /= k.sum()
+    return cv2.sepFilter2D(z, cv2.CV_64F, k, k, borderType=cv2.BORDER_REFLECT)  # = scipy "reflect"
+
+
 def ssim_map(a: np.ndarray, b: np.ndarray, sigma: float = 1.5) -> np.ndarray:
     """Per-pixel SSIM (H, W), averaged over channels."""
     a, b = _check(a, b, None)
@@ -48,8 +62,8 @@ def ssim_map(a: np.ndarray, b: np.ndarray, sigma: float = 1.5) -> np.ndarray:
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     out = np.zeros(a.shape[:2])
     for c in range(a.shape[2]):
-        x, y = a[..., c], b[..., c]
-        f = lambda z: gaussian_filter(z, sigma, truncate=3.5, mode="reflect")  # noqa: E731
+        x, y = np.ascontiguousarray(a[..., c]), np.ascontiguousarray(b[..., c])
+        f = lambda z: gaussian_window(z, sigma)  # noqa: E731
         mx, my = f(x), f(y)
         vx, vy, cxy = f(x * x) - mx * mx, f(y * y) - my * my, f(x * y) - mx * my
         out += ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))

@@ -87,7 +87,9 @@ def summary(rep) -> None:
     blocks = [("p", f"Held-out cameras ({m.get('source', '?')}), {len(m.get('per_view', []))} "
                     f"views; PSNR in dB on the images in the capture's encoding ({enc}; "
                     f"`summary.psnr_{other}` in eval/metrics.json: {other}), SSIM, FLIP (lower "
-                    "is better), and PSNR inside reflectors."),
+                    "is better), and PSNR inside reflectors; ms/frame: medians as the stages "
+                    "rendered them, beside their other worker processes (`ibr bench speed` "
+                    "times frames alone)."),
               ("table", ["method", "PSNR", "SSIM", "FLIP", "PSNR in reflectors", "ms/frame"], rows)]
     extra = [(k, label) for k, label in (("reflector_gain_db", "two layers over single layer "
                                                                "inside reflectors (dB)"),

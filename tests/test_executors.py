@@ -175,3 +175,24 @@ def test_pool_hands_each_worker_consecutive_tasks():
         got = {i: (pid, e) for i, pid, e in ex.map_unordered(_pid, [(i,) for i in range(12)])}
     assert sorted(got) == list(range(12))
     assert all(e is None and isinstance(pid, int) for pid, e in got.values())
+
+
+def _square(x):
+    if x < 0:
+        raise ValueError("negative")
+    return x * x
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_submit_returns_futures_in_process_and_on_the_pool(jobs):
+    """submit starts one task and returns its Future (done already in-process); a failing task's
+    exception comes out of result(); in_order tasks all run once."""
+    with LocalExecutor(jobs) as ex:
+        futs = [ex.submit(_square, i) for i in range(5)]
+        bad = ex.submit(_square, -1)
+        assert [f.result(timeout=60) for f in futs] == [0, 1, 4, 9, 16]
+        with pytest.raises(ValueError, match="negative"):
+            bad.result(timeout=60)
+        got = dict((i, r) for i, r, e in ex.map_unordered(_square, [(i,) for i in range(6)],
+                                                            in_order=True))
+    assert got == {i: i * i for i in range(6)}

@@ -39,6 +39,17 @@ def test_ssim_agrees_with_scikit_image(pair):
     assert metrics.ssim(a, a) == pytest.approx(1.0, abs=1e-9)
 
 
+@pytest.mark.parametrize("shape", [(48, 64), (3, 4), (1, 7), (12, 9)])
+def test_gaussian_window_is_scipys_reflect_filter(shape):
+    """SSIM's window through OpenCV: scipy's gaussian_filter (truncate 3.5, reflect) to float
+    rounding, also on maps smaller than the window (repeated reflections)."""
+    from scipy.ndimage import gaussian_filter
+    z = np.random.default_rng(1).random(shape)
+    for sigma in (1.5, 0.8):
+        ref = gaussian_filter(z, sigma, truncate=3.5, mode="reflect")
+        assert np.abs(metrics.gaussian_window(z, sigma) - ref).max() < 1e-12
+
+
 def test_flip_orders_errors(pair):
     a, b = pair
     worse = np.clip(a + 0.3, 0, 1)

@@ -185,21 +185,12 @@ class IBRModel:
 
     # --- view selection (§5.1.1–5.1.2) -----------------------------------------------------------
     def select(self, camera: Camera, exclude=(), previous: "Frame | None" = None):
-        s = self.settings
-        d = selection.view_distance(self.axes, self.centers, camera.viewing_direction,
-                                    camera.center, s.lam, self.scene_depth)
-        avail = np.array([n not in set(exclude) for n in self.names])
-        if not avail.any():
-            raise ValueError("IBR model: every view is excluded")
         prev = None
-        if s.hysteresis and previous is not None and previous.camera is not None:
+        if self.settings.hysteresis and previous is not None and previous.camera is not None:
             prev = (previous.camera.R, previous.camera.center,
                     [self._index[n] for n in previous.selected if n in self._index])
-        sel = selection.select_views(camera.R, camera.center, self.axes, self.centers, d, avail,
-                                     prev, s.max_angle, s.max_dist, s.angle_bins, s.dist_bins)
-        if s.max_views > 0:
-            sel = sel[:s.max_views]  # select_views sorts by d_k: keep the closest
-        return sel, d
+        return select(self.axes, self.centers, self.names, self.settings, self.scene_depth,
+                      camera, exclude, prev)
 
     # --- GL resources -------------------------------------------------------------------------
     def _programs(self):
@@ -497,6 +488,40 @@ def auto_visibility(ws) -> str:
     except (OSError, json.JSONDecodeError):
         raise InputError(f"{p}: malformed JSON") from None
     return "fuzzy" if dense in (None, "rgbd") else "per_view"
+
+
+def select(axes: np.ndarray, centers: np.ndarray, names: list[str], s: RenderSettings,
+           scene_depth: float, camera: Camera, exclude=(), previous=None):
+    """§5.1.1-5.1.2 over views with optical axes `axes` and centres `centers` (K, 3): the
+    selected indices (sorted by d_k) and every view's d_k (Eq. 14); `previous` is
+    select_views'."""
+    d = selection.view_distance(axes, centers, camera.viewing_direction, camera.center, s.lam,
+                                scene_depth)
+    skip = set(exclude)
+    avail = np.array([n not in skip for n in names])
+    if not avail.any():
+        raise ValueError("IBR model: every view is excluded")
+    sel = selection.select_views(camera.R, camera.center, axes, centers, d, avail, previous,
+                                 s.max_angle, s.max_dist, s.angle_bins, s.dist_bins)
+    if s.max_views > 0:
+        sel = sel[:s.max_views]  # select_views sorts by d_k: keep the closest
+    return sel, d
+
+
+def views_needed(cameras: dict[str, Camera], s: RenderSettings, frames) -> list[str]:
+    """The views (of `cameras`, in their order) that a model of all of them selects for
+    `frames`, [(camera, exclude)] rendered without a previous frame. A model of only these views
+    selects the same ones: each sub-region's smallest d_k is among them, and the fallback's
+    nearest views too (selection.select_views); `s.scene_depth` must be resolved."""
+    if not s.scene_depth:
+        raise ValueError("views_needed: settings.scene_depth must be resolved (Eq. 14's D)")
+    names = list(cameras)
+    axes = np.array([cameras[n].viewing_direction for n in names])
+    centers = np.array([cameras[n].center for n in names])
+    used: set[int] = set()
+    for cam, exclude in frames:
+        used.update(select(axes, centers, names, s, s.scene_depth, cam, exclude)[0])
+    return [names[k] for k in sorted(used)]
 
 
 # --- loading one view from a workspace -----------------------------------------------------------

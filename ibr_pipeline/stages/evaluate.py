@@ -232,15 +232,6 @@ def _score_view(ref, imgs: dict, mask, enc: str, with_flip: bool) -> dict:
     return out
 
 
-def _score_views(ex, argsets: list) -> list[dict]:
-    """_score_view over the test cameras, in their order, on the executor `ex` (FLIP and SSIM
-    are most of the stage's time on a full-size scene)."""
-    out = [None] * len(argsets)
-    for i, res in ex.results(_score_view, argsets):
-        out[i] = res
-    return out
-
-
 def _psnr_in(space: str, ref, img) -> float:
     """PSNR of two linear images after encoding both in `space`."""
     from .. import metrics
@@ -297,13 +288,15 @@ def _run(ctx: StageContext, ex) -> None:
         raise InputError(f"{ws.path(L.render_file('test', 'cameras.json'))}: no test renders (run render_views)")
     source = _source(ctx, "test")
     single = _set_cameras(ctx, "test_single")
-    oracle = _oracle_model(ctx, ex) if cfg.oracle and source in ("heldout", "leave_one_out") else None
+    excludes = {n: (n,) if source == "leave_one_out" else () for n in test}
+    oracle = (_oracle_model(ctx, ex, [(c, excludes[n]) for n, c in test.items()])
+              if cfg.oracle and source in ("heldout", "leave_one_out") else None)
     naive = _naive_model(ctx) if cfg.naive else None
     naive_ms = []
     rows = {"ours": [], "single": [], "oracle": [], "naive": [], "nearest": []}
     holes = _holes(ctx, "test")
     projected = _projected_reflector_masks(ctx, test) if source == "heldout_captures" else {}
-    per_view, to_score = [], []
+    per_view, scoring = [], []
     for i, (name, cam) in enumerate(test.items()):
         key = _gt_image_key(ctx, "test", name, source)
         ref = read_image(ws.path(key), enc)
@@ -318,15 +311,15 @@ def _run(ctx: StageContext, ex) -> None:
         if single:
             imgs["single"] = read_image(ws.path(L.render_file("test_single", f"{i:04d}.png")), enc)
         if oracle is not None:
-            f = oracle.render(cam, exclude=(name,) if source == "leave_one_out" else ())
+            f = oracle.render(cam, exclude=excludes[name])
             imgs["oracle"] = np.clip(f.color, 0, 1)
         if naive is not None:
-            img, _, ms = naive.render(cam, exclude=(name,) if source == "leave_one_out" else ())
+            img, _, ms = naive.render(cam, exclude=excludes[name])
             imgs["naive"] = img
             naive_ms.append(ms)
-            entry["nearest_view"], imgs["nearest"] = naive.nearest(
-                cam, exclude=(name,) if source == "leave_one_out" else ())
-        to_score.append((ref, imgs, mask, enc, cfg.flip))
+            entry["nearest_view"], imgs["nearest"] = naive.nearest(cam, exclude=excludes[name])
+        # scored by the workers while this process renders the next camera's baselines
+        scoring.append(ex.submit(_score_view, ref, imgs, mask, enc, cfg.flip))
         per_view.append(entry)
         err = np.repeat(np.clip(np.abs(ours - ref).mean(2, keepdims=True) * 4, 0, 1), 3, 2)
         panel = [ours, ref, imgs.get("single", np.zeros_like(ours)), err]
@@ -334,8 +327,8 @@ def _run(ctx: StageContext, ex) -> None:
                     np.concatenate([to_display(p) for p in panel], 1))  # display sRGB
     if oracle is not None:
         oracle.release()
-    for entry, scores in zip(per_view, _score_views(ex, to_score)):
-        for k, sc in scores.items():
+    for entry, fut in zip(per_view, scoring):
+        for k, sc in fut.result().items():
             rows[k].append(sc)
             entry[k] = sc
     methods = {k: mean_metrics(v) for k, v in rows.items() if v}
@@ -408,7 +401,10 @@ def _naive_model(ctx: StageContext):
     return from_workspace(ctx.ws, lam=s.lam, scene_depth=s.scene_depth)
 
 
-def _oracle_model(ctx: StageContext, ex):
+def _oracle_model(ctx: StageContext, ex, frames: list):
+    """The GT-built model of the views the renderer selects for `frames` [(camera, exclude)]
+    (renders as the model of every view would, `views_needed`), its views built on `ex`."""
+    from ..render.ibr import views_needed
     from ..render.oracle import GroundTruth
     root = ctx.ws.input_root
     if not (root / "gt" / "geom").is_dir() or not (root / "gt" / "mesh.ply").is_file():
@@ -417,8 +413,9 @@ def _oracle_model(ctx: StageContext, ex):
     # not normalised: without depth frames the poses stage rescales even given poses)
     if not (root / "cameras.json").is_file() or not scene_is_input_frame(ctx):
         return None
-    return GroundTruth(root).model(layers=True, settings=_renderer_settings(ctx),
-                                   map_fn=None if ex.jobs == 1 else ex.results)
+    gt, settings = GroundTruth(root), _renderer_settings(ctx)
+    return gt.model(layers=True, settings=settings, names=views_needed(gt.cameras, settings, frames),
+                    map_fn=None if ex.jobs == 1 else ex.results)
 
 
 def _chart(path: Path, methods: dict) -> None:

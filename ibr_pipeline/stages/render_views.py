@@ -11,7 +11,8 @@ cameras.json format, so `evaluate` and `ibr render` know what was rendered):
   fly_single   the fly-through with the single-layer baseline, if `baseline`
   tour         `tour_frames` frames on a smooth path through the fly-through (else the registered)
                cameras: the video of evaluate and the report, long enough to watch
-  loo          leave-one-out renders of every capture view (`leave_one_out`; supersample trains on them)
+  loo          leave-one-out renders of every capture view (`leave_one_out`; supersample renders
+               its own at half resolution)
 Single-layer rendering is used throughout when `reflection` has not run; when no view has a
 reflection layer the `<set>_single` renders are copies of `<set>` (the same model renders them).
 """

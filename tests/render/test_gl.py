@@ -127,3 +127,29 @@ def test_oracle_views_built_in_workers_match_in_process(tiny):
             np.testing.assert_array_equal(la.alpha, lb.alpha)
     one.release()
     two.release()
+
+
+def test_model_of_the_needed_views_renders_as_the_model_of_all(sample_scene):
+    """evaluate builds the oracle of only the views the renderer selects for its cameras
+    (views_needed): that model selects the same views and renders the same pixels as the model
+    of every view, also for leave-one-out cameras."""
+    from dataclasses import replace
+
+    from ibr_pipeline.render.ibr import RenderSettings, views_needed
+    gt = GroundTruth(sample_scene)
+    names = list(gt.cameras)
+    s = replace(RenderSettings(), scene_depth=1.3)
+    test = cameras_from_json(sample_scene / "gt" / "test_cameras.json")
+    frames = [(c, ()) for c in test.values()] + [(gt.cameras[n], (n,)) for n in names[::6]]
+    needed = views_needed(gt.cameras, s, frames)
+    assert 0 < len(needed) < len(names) and needed == [n for n in names if n in needed]
+    full = gt.model(layers=True, settings=s)
+    part = gt.model(layers=True, settings=s, names=needed)
+    for cam, excl in frames:
+        a, b = full.render(cam, exclude=excl), part.render(cam, exclude=excl)
+        assert a.selected == b.selected and not set(excl) & set(a.selected)
+        np.testing.assert_array_equal(a.color, b.color)
+    full.release()
+    part.release()
+    with pytest.raises(ValueError, match="scene_depth"):
+        views_needed(gt.cameras, RenderSettings(), frames)
