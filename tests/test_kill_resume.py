@@ -280,7 +280,7 @@ def test_sigkill_during_render_views(prepared, tmp_path):
                and list((ws / "renders").rglob(TMP)))
     done = _written(log, ws)
     assert 4 <= sum(k.endswith(".png") for k in done) < len(list((ref / "renders").rglob("*.png")))
-    assert not (ws / "renders" / "loo" / "cameras.json").exists(), "the kill must land mid-stage"
+    assert not (ws / "renders" / "tour" / "cameras.json").exists(), "the kill must land mid-stage"
     _check_killed(ws, ref, "render_views", ["renders"])
     _finish(_ibr_run(ws, "render_views"))
     how = _check_resumed(ws, ref, "render_views")

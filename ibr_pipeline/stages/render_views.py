@@ -11,8 +11,8 @@ cameras.json format, so `evaluate` and `ibr render` know what was rendered):
   fly_single   the fly-through with the single-layer baseline, if `baseline`
   tour         `tour_frames` frames on a smooth path through the fly-through (else the registered)
                cameras: the video of evaluate and the report, long enough to watch
-  loo          leave-one-out renders of every capture view (`leave_one_out`; supersample renders
-               its own at half resolution)
+  loo          leave-one-out renders of every capture view (`leave_one_out`, off by default;
+               supersample renders its own at half resolution)
 Single-layer rendering is used throughout when `reflection` has not run; when no view has a
 reflection layer the `<set>_single` renders are copies of `<set>` (the same model renders them).
 """
@@ -35,7 +35,9 @@ log = logging.getLogger("ibr_pipeline.render_views")
 @dataclass(frozen=True)
 class RenderViewsConfig(StageConfig):
     baseline: bool = param(True, "also render the single-layer baseline (<set>_single)")
-    leave_one_out: bool = param(True, "also render every capture view from the others (renders/loo)")
+    leave_one_out: bool = param(False, "also render every capture view from the others "
+                                "(renders/loo: how well each capture view is predicted; "
+                                "nothing downstream reads them)")
     fly_frames: int = param(0, "render at most this many fly-through frames (0 = all; a generated "
                             "path has 48)", min=0, max=100000)
     tour_frames: int = param(96, "frames of the tour video's smooth path (4 s at 24 fps; 0 = no "
@@ -102,15 +104,13 @@ def outputs(ctx: StageContext) -> list[str]:
 
 def run(ctx: StageContext) -> None:
     """Each set is one task: with `--jobs N` the sets render in N worker processes (each loads the
-    models it needs once), largest first; the records are written here, in set order."""
-    import numpy as np
+    models it needs once), largest first; the records are written here."""
     from tqdm import tqdm
 
     from ..executors import LocalExecutor
     from ..render.gl import renderer_name
     from ..render.ibr import resolve_settings
     from ..render.sets import reflective_views, release_models, render_set
-    from ..scene import cameras_to_json
 
     ws = ctx.ws
     progress = ctx.progress and log.isEnabledFor(logging.INFO)
@@ -125,40 +125,46 @@ def run(ctx: StageContext) -> None:
     # no view has a second layer: the single-layer model is the same model, so `<set>_single`
     # is a copy of `<set>`'s renders
     copies = [s for s, spec in sets.items() if not spec.get("layers", True) and not two]
-    todo = sorted((s for s in sets if s not in copies), key=lambda s: -len(sets[s]["cameras"]))
+    todo = [s for s in sets if s not in copies]
     jobs = min(max(1, ctx.jobs), len(todo)) if todo else 1
+    if jobs > 1:  # the largest sets first, so that the workers finish together
+        todo.sort(key=lambda s: -len(sets[s]["cameras"]))
     args = [(ws, sets[s]["cameras"], sets[s]["exclude"],
              [L.render_file(s, f"{i:04d}.png") for i in range(len(sets[s]["cameras"]))],
              bool(sets[s].get("layers", True)), settings, ctx.scene.image_encoding,
              s.startswith(("fly", "tour")), ctx.fingerprint,
              f"render {s}" if progress and jobs == 1 else None) for s in todo]
-    results = {}
     bar = tqdm(total=sum(len(sets[s]["cameras"]) for s in todo), desc="render sets",
                unit="frame", disable=not progress or jobs == 1, leave=False)
     try:
         with LocalExecutor(jobs) as ex:
+            # each set's records as soon as it is rendered: a killed run leaves whole sets
             for i, frames, exc in ex.map_unordered(render_set, args, in_order=True):
                 if exc is not None:
                     raise exc
-                results[todo[i]] = frames
+                _write_set(ws, todo[i], sets[todo[i]], frames, two, jobs)
                 bar.update(len(frames))
     finally:
         bar.close()
         release_models()
-    for s, spec in sets.items():
-        if s in copies:
-            _copy_set(ws, s.removesuffix("_single"), s, len(spec["cameras"]))
-            continue
-        frames = results[s]
-        ms = [f["ms"] for f in frames]
-        ws.write_json(L.render_file(s, "timings.json"), {
-            "set": s, "source": spec["source"], "layers": bool(spec.get("layers", True)) and two > 0,
-            "size": list(spec["cameras"][0][1].size) if frames else None,
-            "renderer": renderer_name(), "median_ms": float(np.median(ms)) if ms else None,
-            "frames": frames, "processes": jobs})
-        ws.write_text(L.render_file(s, "cameras.json"), cameras_to_json(dict(spec["cameras"])))
-        log.info("render_views: %-12s %3d frames, median %.1f ms/frame", s, len(frames),
-                 float(np.median(ms)) if ms else float("nan"))
+    for s in copies:
+        _copy_set(ws, s.removesuffix("_single"), s, len(sets[s]["cameras"]))
+
+
+def _write_set(ws, s: str, spec: dict, frames: list, two: int, jobs: int) -> None:
+    import numpy as np
+
+    from ..render.gl import renderer_name
+    from ..scene import cameras_to_json
+    ms = [f["ms"] for f in frames]
+    ws.write_json(L.render_file(s, "timings.json"), {
+        "set": s, "source": spec["source"], "layers": bool(spec.get("layers", True)) and two > 0,
+        "size": list(spec["cameras"][0][1].size) if frames else None,
+        "renderer": renderer_name(), "median_ms": float(np.median(ms)) if ms else None,
+        "frames": frames, "processes": jobs})
+    ws.write_text(L.render_file(s, "cameras.json"), cameras_to_json(dict(spec["cameras"])))
+    log.info("render_views: %-12s %3d frames, median %.1f ms/frame", s, len(frames),
+             float(np.median(ms)) if ms else float("nan"))
 
 
 def _copy_set(ws, src: str, dst: str, n: int) -> None:

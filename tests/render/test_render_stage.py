@@ -26,8 +26,8 @@ def test_render_views_and_evaluate_through_cli(gt_ws, tiny_scene):
     assert main(["-q", "render_views", str(gt_ws), "--no-progress"]) == 0
     tim = json.loads((gt_ws / "renders" / "test" / "timings.json").read_text())
     assert tim["source"] == "heldout" and len(tim["frames"]) == 2 and tim["layers"]
-    for s, n in (("test", 2), ("test_single", 2), ("fly", 4), ("fly_single", 4), ("tour", 96),
-                 ("loo", 8)):
+    assert not (gt_ws / "renders" / "loo").exists()  # leave_one_out is off by default
+    for s, n in (("test", 2), ("test_single", 2), ("fly", 4), ("fly_single", 4), ("tour", 96)):
         pngs = sorted((gt_ws / "renders" / s).glob("*.png"))
         assert len(pngs) == n, s
         img = read_image(pngs[0])
@@ -75,11 +75,14 @@ def test_render_views_in_workers_gives_the_same_renders(gt_ws):
             out[d.name] = ([(f["name"], f["selected"], f["holes"]) for f in t["frames"]],
                            [read_image(p) for p in sorted(d.glob("*.png"))])
         return out
-    assert main(["-q", "render_views", str(gt_ws), "--no-progress", "--force"]) == 0
+    loo = ["--leave-one-out", "true"]
+    assert main(["-q", "render_views", str(gt_ws), "--no-progress", "--force"] + loo) == 0
     one = frames()
-    assert main(["-q", "render_views", str(gt_ws), "--no-progress", "--force", "--jobs", "2"]) == 0
+    assert main(["-q", "render_views", str(gt_ws), "--no-progress", "--force", "--jobs", "2"]
+                + loo) == 0
     two = frames()
-    assert sorted(one) == sorted(two) and "test_single" in one
+    assert sorted(one) == sorted(two) and {"test_single", "loo"} <= set(one)
+    assert len(one["loo"][1]) == 8 and all(n not in sel for n, sel, _ in one["loo"][0])
     assert json.loads((gt_ws / "renders" / "test" / "timings.json").read_text())["processes"] == 2
     for s in one:
         assert one[s][0] == two[s][0], s
