@@ -60,8 +60,9 @@ TIMING_FIELDS = {
     "global/report.json": ["timings", "fusion.ms_per_frame"],
     "views/*/depth_report.json": ["ms", "cpu_ms", "timings_ms"],
     "views/*/mesh_report.json": ["ms", "cpu_ms"],
+    # `processes`: how many render workers the frame times were taken beside (--jobs)
     "renders/*/timings.json": ["median_ms", "frames.*.ms", "frames.*.select_ms",
-                               "frames.*.gl_ms", "frames.*.post_ms"],
+                               "frames.*.gl_ms", "frames.*.post_ms", "processes"],
     "nn/train.json": ["seconds"],                                     # render, train, total
     "eval/metrics.json": ["summary.naive_ms"],
 }

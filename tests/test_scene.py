@@ -166,3 +166,25 @@ def test_colmap_model_naming_unknown_image_is_an_error(tmp_path):
     (tmp_path / "images" / "img_00.png").unlink()
     with pytest.raises(InputError, match="refers to images not in"):
         read_input(tmp_path)
+
+
+def test_registered_cameras_are_read_once_per_file_version_and_handed_out_as_copies(tmp_path):
+    from ibr_pipeline import layout as L
+    from ibr_pipeline.workspace import Workspace
+    ws = Workspace(tmp_path)
+    p = ws.path(L.REGISTERED_CAMERAS)
+    with pytest.raises(InputError, match="no registered cameras"):
+        L.registered_cameras(ws)
+    p.parent.mkdir(parents=True)
+    cams = _cams(4)
+    p.write_text(cameras_to_json(cams))
+    a, b = L.registered_cameras(ws), L.registered_cameras(ws)
+    assert list(a) == list(cams) and all(np.array_equal(a[n].K, cams[n].K) for n in cams)
+    a[next(iter(a))].K[0, 0] = -1.0   # a caller writing into its copy changes nobody else's
+    a.clear()
+    assert list(b) == list(cams) == list(L.registered_cameras(ws))
+    assert L.registered_cameras(ws)[next(iter(cams))].K[0, 0] > 0
+    tmp = p.with_suffix(".tmp")       # replaced (as the workspace writes files): read again
+    tmp.write_text(cameras_to_json(dict(list(cams.items())[:2])))
+    tmp.replace(p)
+    assert list(L.registered_cameras(ws)) == list(cams)[:2]
