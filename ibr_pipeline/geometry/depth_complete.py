@@ -37,12 +37,13 @@ from . import geodesic as geo
 
 def complete_depth(depth: np.ndarray, camera: Camera, image: np.ndarray, mvs_depth: np.ndarray | None = None,
                    cost_edge: float = 15.0, boundary_radius: int = 0, strokes: np.ndarray | None = None,
-                   planes: "PlaneOptions | None" = None, speckle_px: int = 0
-                   ) -> tuple[np.ndarray, dict]:
+                   planes: "PlaneOptions | None" = None, speckle_px: int = 0,
+                   base_edges: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """(completed depth (H, W) float64, {"mvs", "planes", "interpolated": (H, W) bool}: which
     empty pixels of `depth` (<= 0) each step filled). `mvs_depth` (any size of the same aspect,
     0 = none) is resized to the view with nearest-neighbour sampling; `planes` None = no
-    segment-plane step."""
+    segment-plane step; `base_edges`: `geodesic.colour_edge_map` of `image` without strokes, when
+    the caller computed it already."""
     d = np.asarray(depth, dtype=np.float64)
     if d.ndim != 2:
         raise ValueError(f"depth must be (H, W), got {d.shape}")
@@ -63,7 +64,8 @@ def complete_depth(depth: np.ndarray, camera: Camera, image: np.ndarray, mvs_dep
     holes = out <= 0
     interp = np.zeros((h, w), bool)
     if holes.any() and (~holes).any():
-        edges = geo.colour_edge_map(image, strokes, boundary_radius=boundary_radius)
+        edges = (geo.colour_edge_map(image, strokes, boundary_radius=boundary_radius)
+                 if base_edges is None else geo.with_strokes(base_edges, strokes))
         inv, reached = membrane_fill(np.where(holes, 0.0, 1.0 / np.where(holes, 1.0, out)), holes,
                                      edge_weights(edges, cost_edge))
         interp = holes & reached & (inv > 0)

@@ -222,13 +222,16 @@ def masked_mvs(image: np.ndarray, camera: Camera, depth_init: np.ndarray, mask: 
 
 def refine(depth: np.ndarray, camera: Camera, image: np.ndarray, region: np.ndarray,
            strokes: np.ndarray | None = None, cost_base: float = 0.05, cost_edge: float = 5.0,
-           k: int = geo.K_NEIGHBOURS, boundary_radius: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           k: int = geo.K_NEIGHBOURS, boundary_radius: int = 0,
+           base_edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Eq. 2 over `region` of `depth` (camera `camera`, colour `image`; `boundary_radius`: see
-    `geodesic.colour_edge_map`). Returns (refined depth, filled (H, W) bool, colour edge map)."""
+    `geodesic.colour_edge_map`; `base_edges`: that map of `image` without strokes, computed
+    already). Returns (refined depth, filled (H, W) bool, colour edge map)."""
     depth = np.asarray(depth, dtype=np.float64)
     P = points_from_depth(depth, camera.K)
     N = normals_from_points(P, depth > 0)
-    edges = geo.colour_edge_map(image, strokes, boundary_radius=boundary_radius)
+    edges = (geo.colour_edge_map(image, strokes, boundary_radius=boundary_radius)
+             if base_edges is None else geo.with_strokes(base_edges, strokes))
     cost = geo.edge_cost(edges, cost_base, cost_edge)
     rays = pixel_rays(camera.K, *depth.shape)
     new, filled = geo.interpolate_depth(depth, P, N, rays, cost, region, k)

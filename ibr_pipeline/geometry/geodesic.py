@@ -98,6 +98,13 @@ def colour_edge_map(image: np.ndarray, strokes: np.ndarray | None = None,
     edges = np.maximum(edges, cv2.Canny(grey, *canny).astype(np.float32) / 255.0)
     if boundary_radius > 0:
         edges = edges * _robust_unit(boundary_strength(encode_for_edges(image, 0.0), int(boundary_radius)))
+    return with_strokes(edges, strokes)
+
+
+def with_strokes(edges: np.ndarray, strokes: np.ndarray | None) -> np.ndarray:
+    """`colour_edge_map`'s last step: user strokes (H, W) bool add 1 to an edge map (H, W), so
+    that a map computed once without strokes serves callers with different strokes."""
+    edges = np.asarray(edges)
     if strokes is not None:
         s = np.asarray(strokes, bool)
         if s.shape != edges.shape:

@@ -251,6 +251,7 @@ def _run(ctx: StageContext, view: str) -> None:
 
     from ..errors import InputError
     from ..geometry import depth_refine as dr
+    from ..geometry import geodesic as geo
     from ..geometry.normals import world_normals
     from ..io.images import read_image, write_image
 
@@ -358,8 +359,11 @@ def _run(ctx: StageContext, view: str) -> None:
     if cfg.edge_barrier:  # G's own occlusion edges as automatic strokes (see the config help)
         e = dr.detect(depth1, cam, lam, with_mask=False).edge_pixels
         barrier = e if strokes is None else (strokes | e)
+    # the colour edge map without strokes, shared by Eq. 2 and the completion (their strokes differ)
+    base_edges = geo.colour_edge_map(image, None, boundary_radius=px * cfg.edge_boundary_radius)
     depth2, filled, _ = dr.refine(depth1, cam, image, region, barrier, cfg.cost_base, cfg.cost_edge,
-                                  cfg.neighbours, boundary_radius=px * cfg.edge_boundary_radius)
+                                  cfg.neighbours, boundary_radius=px * cfg.edge_boundary_radius,
+                                  base_edges=base_edges)
     timings["interp_ms"] = 1000 * (time.perf_counter() - t)
     # 5. completion where G is empty (ours): the view's MVS depth, then edge-aware interpolation
     t = time.perf_counter()
@@ -372,7 +376,8 @@ def _run(ctx: StageContext, view: str) -> None:
         # borders (docs/VIEW_DEPTH.md)
         planes = cfg.planes.scaled(px * px) if cfg.complete_planes and mvs_v is not None else None
         depth2, which = complete_depth(depth2, cam, image, mvs_v, cfg.cost_edge,
-                                       px * cfg.edge_boundary_radius, strokes, planes)
+                                       px * cfg.edge_boundary_radius, strokes, planes,
+                                       base_edges=base_edges)
         completed = {k: int(v.sum()) for k, v in which.items()}
     timings["complete_ms"] = 1000 * (time.perf_counter() - t)
     if not np.all(np.isfinite(depth2)):

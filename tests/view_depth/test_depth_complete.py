@@ -44,6 +44,18 @@ def test_colour_edges_keep_two_surfaces_apart():
     # without edge weights the two sides blend across the middle
     flat, _ = complete_depth(depth, cam, image, cost_edge=0.0)
     assert np.abs(flat[24, W // 2 - 3] - 1.0) > 0.1
+    # the edge map computed once without strokes (view_depth shares it with Eq. 2) and strokes
+    # added here: the same completion as computing it inside
+    from ibr_pipeline.geometry.geodesic import colour_edge_map
+    strokes = np.zeros((H, W), bool)
+    strokes[:, 40] = True
+    for st in (None, strokes):
+        ref, _ = complete_depth(depth, cam, image, cost_edge=15.0, strokes=st)
+        got, _ = complete_depth(depth, cam, image, cost_edge=15.0, strokes=st,
+                                base_edges=colour_edge_map(image, None))
+        assert np.array_equal(got, ref)
+    assert not np.array_equal(complete_depth(depth, cam, image, cost_edge=15.0, strokes=strokes)[0],
+                              out)  # the stroke changes the fill: it reached the map
 
 
 def test_mvs_depth_comes_first_and_unreachable_holes_stay_empty():

@@ -221,6 +221,13 @@ def test_strokes_keep_eq2_on_its_side_of_an_edge():
     kept, _, _ = dr.refine(d, cam, image, region, stroke, 0.05, 15.0)
     assert np.abs(free - d)[region].max() > 0.2  # sides mixed near the edge
     assert np.abs(kept - d)[region].max() < 1e-6
+    # view_depth computes the edge map once without strokes and hands it to Eq. 2 and to the
+    # completion, each adding its own strokes: the same depths as computing it in each
+    base = geo.colour_edge_map(image, None)
+    for strokes, ref in ((None, free), (stroke, kept)):
+        got, _, edges = dr.refine(d, cam, image, region, strokes, 0.05, 15.0, base_edges=base)
+        assert np.array_equal(got, ref)
+        assert np.array_equal(edges, geo.colour_edge_map(image, strokes))
 
 
 def test_shape_checks():
