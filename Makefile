@@ -49,7 +49,7 @@ test: install
 test-slow: install
 	$(BIN)/python -m pytest -m slow
 
-# full size: a 640x480, 120-view synthetic mirror_room (generation ~3 min, then every stage). Its
+# full size: a 640x480, 120-view synthetic mirror_room (generation ~1.5 min, then every stage). Its
 # RGB-D sensor has the images' resolution (--depth-scale 1.0; ibr synth's default is half): Xu et
 # al. build G from MVS of 6000x4000 photos, sharper than the images they refine (docs/VIEW_DEPTH.md)
 FULL_SCENE := $(OUT)/scenes/mirror_room_rgbd640
