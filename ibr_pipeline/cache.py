@@ -13,9 +13,11 @@ from typing import Callable, Hashable
 
 
 def file_key(path: Path | str) -> tuple:
-    """(path, size, mtime_ns): changes whenever the file is rewritten."""
+    """(path, inode, size, mtime_ns): changes whenever the file is rewritten. The inode too: the
+    workspace replaces files by atomic renames, a new inode even when size and modification time
+    come out equal."""
     st = os.stat(path)
-    return (str(path), st.st_size, st.st_mtime_ns)
+    return (str(path), st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 class ProcessCache:

@@ -11,6 +11,8 @@ import hashlib
 import json
 import re
 
+from .cache import ProcessCache, file_key
+
 # --- ingest --------------------------------------------------------------------------------------
 SCENE = "scene.json"                              # the scene manifest
 INGEST_IMAGES = "ingest/images"                   # frames prepared from the input (undistorted, upright, video)
@@ -151,26 +153,16 @@ def registered_cameras(ws) -> dict:
     in a process, each call given its own copies: a per-view stage's planning and tasks ask for it
     several times per view, and parsing and checking 120 cameras takes 13 ms, copying them 2."""
     import copy
-    import os
 
     from .errors import InputError
     from .scene import cameras_from_json
     p = ws.path(REGISTERED_CAMERAS)
-    try:
-        st = os.stat(p)
-    except OSError:
-        st = None
-    if st is None or not p.is_file():
+    if not p.is_file():
         raise InputError(f"{p}: no registered cameras yet (run `ibr poses` first)")
-    # the inode too: files are replaced by atomic renames, so a rewrite is a new inode even
-    # when size and modification time come out equal
-    key = (str(p), st.st_ino, st.st_size, st.st_mtime_ns)
-    if _CAMERAS.get("key") != key:
-        _CAMERAS.update(key=key, cameras=cameras_from_json(p))
-    return copy.deepcopy(_CAMERAS["cameras"])
+    return copy.deepcopy(_CAMERAS.get(file_key(p), lambda: cameras_from_json(p)))
 
 
-_CAMERAS: dict = {}  # the last registered_cameras file read in this process
+_CAMERAS = ProcessCache(1)  # the last registered_cameras file read in this process
 
 
 def heldout_cameras(ws) -> dict:

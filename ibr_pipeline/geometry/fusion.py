@@ -25,6 +25,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from ..cache import ProcessCache
 from ..config import Options, param
 from ..errors import ConfigError
 from ..io.mesh import Mesh, canonical_mesh, canonical_order
@@ -39,19 +40,17 @@ def _ray_dirs(camera: Camera) -> np.ndarray:
     the cameras with the same intrinsics and size: a fusion asks for them per frame and reflector
     (360 times for 120 frames and 3 reflectors, 16 ms each at 640x480) with one K throughout."""
     key = (np.asarray(camera.K, dtype=np.float64).tobytes(), camera.width, camera.height)
-    d = _RAYS.get(key)
-    if d is None:
+
+    def rays():
         uv = camera.pixel_grid().reshape(-1, 2)
         d = np.linalg.solve(camera.K, np.c_[uv, np.ones(len(uv))].T).T
         d = d.reshape(camera.height, camera.width, 3)
         d.setflags(write=False)
-        if len(_RAYS) >= 4:
-            _RAYS.pop(next(iter(_RAYS)))
-        _RAYS[key] = d
-    return d
+        return d
+    return _RAYS.get(key, rays)
 
 
-_RAYS: dict = {}  # (K bytes, W, H) -> rays: a few camera models per capture
+_RAYS = ProcessCache(4)  # (K bytes, W, H) -> rays: a few camera models per capture
 
 
 def plane_depth(camera: Camera, plane: Sequence[float]) -> np.ndarray:

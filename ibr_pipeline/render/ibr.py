@@ -538,6 +538,21 @@ def mask_boundary(mask: np.ndarray) -> np.ndarray:
     return m & ~inner
 
 
+def has_reflection_layer(ws, name: str) -> bool:
+    """Whether view `name`'s `layers.json` (written by `reflection`) names a reflector: then a
+    two-layer model renders it with a reflection layer (M1/I1); absent file: no."""
+    lj = ws.path(f"{ws.view_dir(name)}/{L.LAYERS}")
+    if not lj.is_file():
+        return False
+    try:
+        info = json.loads(lj.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"{lj}: malformed JSON ({e})") from None
+    if not isinstance(info, dict):
+        raise InputError(f"{lj}: expected a JSON object (rerun `ibr reflection --force`)")
+    return info.get("reflector") is not None
+
+
 def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
               s: RenderSettings, encoding: str = "linear") -> ViewData:
     """One view's LayerData from the files of docs/PIPELINE.md (view_mesh + reflection); colour
@@ -563,14 +578,7 @@ def load_view(ws, name: str, camera: Camera, image_key: str, layers: bool,
         raise InputError(f"{ws.path(f'{vdir}/{L.EDGES}')}: size {edges.shape[::-1]} is not {W}x{H}")
     decay = 0.0 if s.visibility == "per_view" else s.edge_decay_px  # see RenderSettings.visibility
     alpha0 = blend.texture_alpha(edges, s.feather_px, decay)
-    info = {}
-    lj = ws.path(f"{vdir}/{L.LAYERS}")
-    if layers and lj.is_file():
-        try:
-            info = json.loads(lj.read_text())
-        except json.JSONDecodeError as e:
-            raise InputError(f"{lj}: malformed JSON ({e})") from None
-    if layers and info.get("reflector") is not None:
+    if layers and has_reflection_layer(ws, name):
         m0, m1 = read_ply(ws.path(f"{vdir}/{L.M0}")), read_ply(ws.path(f"{vdir}/{L.M1}"))
         bpath = ws.path(f"{vdir}/{L.BETA}")
         try:

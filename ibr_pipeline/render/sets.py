@@ -10,13 +10,11 @@ whatever llvmpipe's thread count).
 """
 from __future__ import annotations
 
-import json
 import logging
 
 from .. import layout as L
-from ..errors import InputError
 from ..scene import Camera
-from .ibr import IBRModel, RenderSettings
+from .ibr import IBRModel, RenderSettings, has_reflection_layer
 
 log = logging.getLogger("ibr_pipeline.render")
 
@@ -26,20 +24,8 @@ _models: dict = {}
 
 
 def reflective_views(ws, names: list[str]) -> list[str]:
-    """The views of `names` whose `layers.json` names a reflector: those a two-layer model renders
-    with a reflection layer (the rule of `ibr.load_view`)."""
-    out = []
-    for n in names:
-        p = ws.path(f"{ws.view_dir(n)}/{L.LAYERS}")
-        if not p.is_file():
-            continue
-        try:
-            info = json.loads(p.read_text())
-        except json.JSONDecodeError as e:
-            raise InputError(f"{p}: malformed JSON ({e})") from None
-        if isinstance(info, dict) and info.get("reflector") is not None:
-            out.append(n)
-    return out
+    """The views of `names` that a two-layer model renders with a reflection layer."""
+    return [n for n in names if has_reflection_layer(ws, n)]
 
 
 def model(ws, layers: bool, settings: RenderSettings, key: str = "",
