@@ -37,8 +37,8 @@ log = logging.getLogger("ibr_pipeline.fusion")
 # --- reflectors ----------------------------------------------------------------------------------
 def _ray_dirs(camera: Camera) -> np.ndarray:
     """(H, W, 3) camera-space rays with z = 1 through every pixel centre. Read-only, shared by
-    the cameras with the same intrinsics and size: a fusion asks for them per frame and reflector
-    (360 times for 120 frames and 3 reflectors, 16 ms each at 640x480) with one K throughout."""
+    the cameras with the same intrinsics and size: a fusion asks for them per frame and
+    reflector, with one K throughout."""
     key = (np.asarray(camera.K, dtype=np.float64).tobytes(), camera.width, camera.height)
 
     def rays():

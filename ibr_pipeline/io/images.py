@@ -54,9 +54,9 @@ def image_size(path: Path) -> tuple[int, int]:
 
 
 ENCODINGS = ("srgb", "linear")
-# zlib level of every PNG written: lossless at any level; level 1 encodes a 640x480 render ~4x
-# faster than PIL's default 6 for ~14 % more bytes (docs/BENCHMARKS.md, "PNG writes"), and the
-# pipeline writes thousands of renders, layers and depth maps
+# zlib level of every PNG written: lossless at any level; level 1 encodes several times faster
+# than PIL's default 6 for somewhat larger files, and the pipeline writes thousands of renders,
+# layers and depth maps (docs/BENCHMARKS.md, `make demo-full`, session 36)
 PNG_COMPRESS_LEVEL = 1
 
 

@@ -32,9 +32,9 @@ def compose_8bit(I0: np.ndarray, I1: np.ndarray, beta: np.ndarray):
     return q0, q1, qb, quantize(img)
 
 
-# the per-view ground-truth geometry (gt/geom): deflate writes a 640x480 view in ~30 ms, LZMA in
-# ~260 ms (a fifth of `ibr synth`'s time at that size) for a third of the bytes (80 vs 237 KB):
-# generation time is what users wait for, the disk holds either (docs/SYNTHETIC.md)
+# the per-view ground-truth geometry (gt/geom): deflate, not LZMA, whose compression was a large
+# share of `ibr synth`'s time at 640x480 for files a third the size: generation time is what
+# users wait for, the disk holds either (docs/SYNTHETIC.md)
 GEOM_COMPRESSION = "deflate"
 
 
