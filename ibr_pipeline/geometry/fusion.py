@@ -313,6 +313,30 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
     return mesh, stats
 
 
+def triangle_components(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Connected components of a triangle mesh, triangles joined where they share an edge (as
+    open3d's cluster_connected_triangles, which took ~10x longer on a fused mesh of 3.5 M faces:
+    it walks the adjacency one triangle at a time). faces (F, 3) vertex indices. Returns
+    (label (F,) int, face count of each label)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    f = np.asarray(faces, np.int64)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"faces must be (F, 3), got {f.shape}")
+    nf = len(f)
+    if nf == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    key = e[:, 0] * (int(f.max()) + 1) + e[:, 1]
+    o = np.argsort(key, kind="stable")
+    face = np.tile(np.arange(nf), 3)[o]
+    shared = key[o][1:] == key[o][:-1]   # consecutive faces on one edge (also a non-manifold one)
+    g = coo_matrix((np.ones(int(shared.sum()), np.int8), (face[:-1][shared], face[1:][shared])),
+                   shape=(nf, nf))
+    _, label = connected_components(g, directed=False)
+    return label, np.bincount(label)
+
+
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None,
                min_component: float) -> tuple[Mesh, int]:
     """Remove connected components with fewer than `min_component` x total faces (fusion noise,
@@ -325,8 +349,7 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | Non
         m.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(colors, np.float64), 0, 1))
     nf = len(m.triangles)
     if nf:
-        clusters, counts, _ = m.cluster_connected_triangles()
-        clusters, counts = np.asarray(clusters), np.asarray(counts)
+        clusters, counts = triangle_components(faces)
         small = counts < max(1, min_component * nf)
         m.remove_triangles_by_mask(small[clusters])
         m.remove_degenerate_triangles()

@@ -98,6 +98,33 @@ def test_attributes_break_position_ties_and_identical_vertices_merge():
     assert len(a[0]) == 3
 
 
+def _reference_vertex_order(v, a):
+    """The order by one lexsort over every key: position as numbers, attributes, raw bits."""
+    v32 = np.ascontiguousarray(v, np.float32)
+    a = np.zeros((len(v32), 0)) if a is None else np.asarray(a, np.float64).reshape(len(v32), -1)
+    ident = np.concatenate([v32.view(np.uint32).astype(np.uint64), a.view(np.uint64)], axis=1)
+    keys = ([ident[:, j] for j in range(ident.shape[1] - 1, -1, -1)]
+            + [a[:, j] for j in range(a.shape[1] - 1, -1, -1)] + [v32[:, i] for i in (2, 1, 0)])
+    order = np.lexsort(keys)
+    x = ident[order]
+    new = np.r_[True, np.any(x[1:] != x[:-1], axis=1)]
+    return order[new]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_position_ties_sorted_as_one_lexsort_over_all_keys(seed):
+    # many vertices on few positions (-0.0 and 0.0 among them), attributes with ties of their own
+    rng = np.random.default_rng(seed)
+    pts = np.array([[0.0, 0, 0], [-0.0, 0, 0], [0, 1, 0], [1, 0, 0], [1, 1, 2]], np.float32)
+    v = np.concatenate([pts[rng.integers(0, len(pts), 300)], rng.normal(size=(300, 3))])
+    v = v[rng.permutation(len(v))].astype(np.float32)
+    a = rng.integers(0, 3, (len(v), 2)).astype(np.float64)
+    f = np.stack([rng.permutation(len(v))[:3] for _ in range(200)])
+    for attrs in (a, None):
+        vo, _, _ = canonical_order(v, f, attrs)
+        assert np.array_equal(vo, _reference_vertex_order(v, attrs))
+
+
 def test_empty_and_bad_arguments():
     vo, nf, fo = canonical_order(np.zeros((0, 3)), np.zeros((0, 3), int))
     assert vo.shape == (0,) and nf.shape == (0, 3) and fo.shape == (0,)
