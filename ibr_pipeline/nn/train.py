@@ -114,6 +114,7 @@ def _lr_at(opts: TrainOptions, step: int, horizon: int | None = None) -> float:
 
 
 _clock = time.perf_counter  # the loop's clock (a test replaces it)
+VALIDATIONS = 4   # validations per run, the last step's included
 # the fit times the steps after the first FIT_SKIP ones (allocation, first-touch overhead), first
 # after FIT_PROBE_STEPS of them, then at every checkpoint; FIT_MARGIN of the remaining time is used
 FIT_SKIP = 5
@@ -136,12 +137,15 @@ def fitted_horizon(planned: int, step: int, steps_timed: int, timed_s: float,
 
 def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Sequence[Sample],
           opts: TrainOptions, checkpoint: Path | None = None, fingerprint: str = "",
-          capture_samples: Sequence[Sample] = (), time_budget_s: float = 0.0) -> TrainResult:
+          capture_samples: Sequence[Sample] = (), time_budget_s: float = 0.0,
+          validate_last: bool = True) -> TrainResult:
     """Train a DSRNet; resumes from `checkpoint` when it exists with the same `fingerprint`
     (the data's, given by the caller), the same options (those that affect the result) and model.
     `capture_samples` (data.capture_pairs of training views only) are mixed into the batches with
     probability `opts.capture_fraction` per crop. `time_budget_s` > 0: stop (and save) when the
-    training has run that long; with `opts.fit_budget` the decay is fitted to it."""
+    training has run that long; with `opts.fit_budget` the decay is fitted to it.
+    `validate_last=False`: no validation at the last step, for a caller that evaluates the model
+    it gets back anyway and records that with `record_validation`."""
     if not train_samples:
         raise ValueError("train: no training samples")
     if not (time_budget_s >= 0 and math.isfinite(time_budget_s)):
@@ -171,13 +175,22 @@ def train(config: DSRNetConfig, train_samples: Sequence[Sample], val_samples: Se
         log.info("supersample: training on %d CPU thread%s", threads, "s" * (threads > 1))
     with torch_threads(threads):
         result = _loop(model, features, optim, train_samples, val_samples, opts, checkpoint,
-                       fingerprint, history, start, device, capture_samples, time_budget_s)
+                       fingerprint, history, start, device, capture_samples, time_budget_s,
+                       validate_last)
     result.threads = threads if device.type == "cpu" else None
     return result
 
 
+def record_validation(history: dict, step: int, psnr: float, psnr_bilinear: float | None) -> None:
+    """One point of the validation curve (the loss chart's and train.json's `val_curve`)."""
+    history["val_step"].append(step)
+    history["val_psnr"].append(psnr)
+    history["val_psnr_bilinear"].append(psnr_bilinear)
+
+
 def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, fingerprint,
-          history, start, device, capture_samples=(), budget_s: float = 0.0) -> TrainResult:
+          history, start, device, capture_samples=(), budget_s: float = 0.0,
+          validate_last: bool = True) -> TrainResult:
     from tqdm import tqdm
 
     clock = _clock
@@ -190,9 +203,11 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
     t_fit = 0.0
     bar = tqdm(total=opts.steps, initial=start, desc="supersample: training DSRNet", unit="step",
                disable=not opts.progress, leave=False)
-    # validation (PSNR only; the baselines once) about 8 times a run, at checkpoint steps: at
-    # 640x480 a full validation of 24 pairs took longer than the 100 training steps between two
-    val_every = opts.checkpoint_every * max(1, math.ceil(opts.steps / 8 / opts.checkpoint_every))
+    # validation (PSNR only; the baselines once) VALIDATIONS times a run, at checkpoint steps: it
+    # runs DSRNet on every validation pair at full size, which at 640x480 costs more than the
+    # training steps between two validations
+    val_every = opts.checkpoint_every * max(1, math.ceil(opts.steps / VALIDATIONS
+                                                         / opts.checkpoint_every))
     bilinear = None
     while step < horizon:   # the decay is complete at the horizon (= steps unless fitted)
         now = clock() - t0
@@ -224,12 +239,11 @@ def _loop(model, features, optim, train_samples, val_samples, opts, checkpoint, 
         bar.update(1)
         bar.set_postfix(loss=f"{history['loss'][-1]:.4f}")
         if step % opts.checkpoint_every == 0 or step == horizon:
-            if val_samples and (step % val_every == 0 or step == horizon):
+            last = step == horizon
+            if val_samples and (last and validate_last or not last and step % val_every == 0):
                 ev = evaluate(model, val_samples, device, baselines=bilinear is None, ssim=False)
                 bilinear = ev.get("psnr_bilinear", bilinear)
-                history["val_step"].append(step)
-                history["val_psnr"].append(ev["psnr"])
-                history["val_psnr_bilinear"].append(bilinear)
+                record_validation(history, step, ev["psnr"], bilinear)
             if checkpoint is not None:
                 _save_checkpoint(checkpoint, model, optim, step, history, fingerprint)
     bar.close()

@@ -84,7 +84,7 @@ def run(ctx: StageContext) -> None:
     from ..nn.data import (capture_pairs, make_sample, nearest_views, render_low_res,
                            sequence_pairs, split_views, supersampled_size)
     from ..nn.model import count_parameters, preset, resolve_device, save_model
-    from ..nn.train import evaluate, plot_losses, train
+    from ..nn.train import evaluate, plot_losses, record_validation, train
     from ..render.low_res import IBRRenderer, StandInRenderer
     from ..workspace import atomic_path
 
@@ -180,9 +180,11 @@ def run(ctx: StageContext) -> None:
     opts = dataclasses.replace(tcfg, progress=show, vgg_weights=(str(ws.path(tcfg.vgg_weights))
                                                                  if tcfg.vgg_weights else ""))
     result = train(model_cfg, train_samples, val_samples, opts, ws.path(L.CHECKPOINT), digest,
-                   capture_samples=capture_samples, time_budget_s=budget)
+                   capture_samples=capture_samples, time_budget_s=budget, validate_last=False)
     device = next(result.model.parameters()).device
     val = evaluate(result.model, val_samples, device)
+    if val:  # the curve's last point: this evaluation, not a second pass over the same views
+        record_validation(result.history, result.steps, val["psnr"], val["psnr_bilinear"])
     save_model(ws.path(L.MODEL), result.model, {"trained_steps": result.steps})
     horizon = int(result.history.get("horizon", tcfg.steps))
     fitted = horizon < tcfg.steps

@@ -178,3 +178,15 @@ def test_gradient_clipping_bounds_the_norm_and_counts_clipped_steps(tiny_samples
     assert "clipped" not in off.history and len(norms) == 6              # not called when off
     # a bound that never binds changes nothing
     assert torch.equal(_weights(loose.model), _weights(off.model))
+
+
+def test_validations_spread_over_the_run_and_the_last_left_to_the_caller(tiny_samples):
+    tr, va, _ = tiny_samples
+    opts = dataclasses.replace(OPTS, steps=12, checkpoint_every=1)
+    full = train(SMALL, tr, va, opts)
+    assert full.history["val_step"] == [3, 6, 9, 12]   # 4 a run, at steps // 4, the last one's too
+    own = train(SMALL, tr, va, opts, validate_last=False)
+    assert own.history["val_step"] == [3, 6, 9]
+    assert own.history["val_psnr"] == full.history["val_psnr"][:3]   # the same run otherwise
+    ev = evaluate(own.model, va, torch.device("cpu"), ssim=False)
+    assert abs(ev["psnr"] - full.history["val_psnr"][-1]) < 1e-3
