@@ -360,8 +360,7 @@ class Problem:
             k = np.all(np.isfinite(self.prior), axis=1)
             diag = diag + o.lambda_scene * k
             g = g + o.lambda_scene * np.where(k[:, None], np.nan_to_num(self.prior), 0.0)
-        Hm = (A.T @ A + o.lambda_s * (D.T @ sp.diags(w0 + w1) @ D) + sp.diags(diag)).tocsr()
-        Hm.sort_indices()
+        Hm = normal_matrix(A, D, o.lambda_s * (w0 + w1), diag)
         if o.matrix_precision == "float32":  # both solvers read H in its own precision
             Hm = Hm.astype(np.float32)
         solve = block_pcg if o.kernels == "numba" else block_pcg_reference
@@ -390,6 +389,24 @@ class Problem:
         """(R, T) of M1 by Levenberg-Marquardt on E_d, accepted only if the energy drops."""
         from .geometry_step import pose_step
         pose_step(self, R, history)
+
+
+def normal_matrix(A, D, edge_w: np.ndarray, diag: np.ndarray):
+    """H = A^T A + D^T diag(edge_w) D + diag(diag) (CSR, sorted indices) as one product B^T B of
+    the stacked rows B = [A; sqrt(edge_w) D; sqrt(diag) I]: the sum of three sparse matrices with
+    different patterns cost as much as the products (two scipy additions a step). edge_w (E,) and
+    diag (P,) must be >= 0. The same matrix up to rounding (tested)."""
+    import scipy.sparse as sp
+    P = A.shape[1]
+    if D.shape[1] != P or edge_w.shape != (D.shape[0],) or diag.shape != (P,):
+        raise ValueError(f"A {A.shape}, D {D.shape}, edge_w {edge_w.shape}, diag {diag.shape}")
+    D = sp.csr_matrix(D)
+    wD = sp.csr_matrix((D.data * np.repeat(np.sqrt(edge_w), np.diff(D.indptr)), D.indices,
+                        D.indptr), shape=D.shape)
+    B = sp.vstack([sp.csr_matrix(A), wD, sp.diags(np.sqrt(diag)).tocsr()], format="csr")
+    H = (B.T @ B).tocsr()
+    H.sort_indices()
+    return H
 
 
 def aggregate(ref: ViewGeom, R: np.ndarray, nbs: list[ViewGeom], nb_R: dict[str, np.ndarray],
