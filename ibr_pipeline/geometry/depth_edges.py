@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .normals import dot3
+
 LAMBDA_REL = 0.01       # Xu §4.2.1: lambda = 0.01 * max(1, min(d_i, d_j))
 LAMBDA_REL_MVS = 0.05   # ours, where G came from multi-view stereo: about twice its depth
                         # noise (~2-3 %), so that noise makes no edge (docs/VIEW_DEPTH.md)
@@ -54,7 +56,7 @@ def planar_distance(pi: np.ndarray, pj: np.ndarray, ni: np.ndarray, nj: np.ndarr
     if not (pi.shape == pj.shape == ni.shape == nj.shape) or pi.shape[-1] != 3:
         raise ValueError(f"expected equal (..., 3) arrays, got {pi.shape} {pj.shape} {ni.shape} {nj.shape}")
     d = pi - pj
-    return np.maximum(np.abs(np.sum(d * ni, -1)), np.abs(np.sum(d * nj, -1)))
+    return np.maximum(np.abs(dot3(d, ni)), np.abs(dot3(d, nj)))
 
 
 def _pair(points, normals, depth, a, b, lam_rel):

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from .depth_edges import LAMBDA_REL
+from .normals import dot3
 
 
 def rounded_steps(depth: np.ndarray, points: np.ndarray, normals: np.ndarray,
@@ -50,9 +51,9 @@ def rounded_steps(depth: np.ndarray, points: np.ndarray, normals: np.ndarray,
             # both planes must see the other point off-plane (min, not Eq. 1's max): for two
             # parallel planes offset by h both are h, for normal noise on one side only one is large
             d = points[a] - points[b]
-            dt = np.minimum(np.abs(np.sum(d * normals[a], -1)), np.abs(np.sum(d * normals[b], -1)))
+            dt = np.minimum(np.abs(dot3(d, normals[a])), np.abs(dot3(d, normals[b])))
             lam = lambda_rel * np.maximum(1.0, np.minimum(depth[a], depth[b]))
-            par = np.abs(np.sum(normals[a] * normals[b], -1)) >= cos_max
+            par = np.abs(dot3(normals[a], normals[b])) >= cos_max
             step[c] |= valid[a] & valid[b] & par & (dt > min_rel * lam)
         k = np.ones((2 * s + 1, 2 * s + 1), np.uint8)
         out |= cv2.dilate(step.astype(np.uint8), k).astype(bool)
