@@ -30,21 +30,19 @@ from ..config import Options, param
 from ..errors import ConfigError
 from ..io.mesh import Mesh, canonical_mesh, canonical_order
 from ..scene import Camera, Reflector
+from .normals import pixel_rays
 
 log = logging.getLogger("ibr_pipeline.fusion")
 
 
 # --- reflectors ----------------------------------------------------------------------------------
 def _ray_dirs(camera: Camera) -> np.ndarray:
-    """(H, W, 3) camera-space rays with z = 1 through every pixel centre. Read-only, shared by
-    the cameras with the same intrinsics and size: a fusion asks for them per frame and
-    reflector, with one K throughout."""
+    """`normals.pixel_rays` of the camera, read-only and shared by the cameras with the same
+    intrinsics and size: a fusion asks for them per frame and reflector, with one K throughout."""
     key = (np.asarray(camera.K, dtype=np.float64).tobytes(), camera.width, camera.height)
 
     def rays():
-        uv = camera.pixel_grid().reshape(-1, 2)
-        d = np.linalg.solve(camera.K, np.c_[uv, np.ones(len(uv))].T).T
-        d = d.reshape(camera.height, camera.width, 3)
+        d = pixel_rays(camera.K, camera.height, camera.width)
         d.setflags(write=False)
         return d
     return _RAYS.get(key, rays)
@@ -329,8 +327,8 @@ def triangle_components(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     key = e[:, 0] * (int(f.max()) + 1) + e[:, 1]
     o = np.argsort(key, kind="stable")
-    face = np.tile(np.arange(nf), 3)[o]
-    shared = key[o][1:] == key[o][:-1]   # consecutive faces on one edge (also a non-manifold one)
+    face, key = np.tile(np.arange(nf), 3)[o], key[o]
+    shared = key[1:] == key[:-1]   # consecutive faces on one edge (also a non-manifold one)
     g = coo_matrix((np.ones(int(shared.sum()), np.int8), (face[:-1][shared], face[1:][shared])),
                    shape=(nf, nf))
     _, label = connected_components(g, directed=False)
