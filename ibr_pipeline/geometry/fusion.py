@@ -313,9 +313,9 @@ def tsdf_fuse(frames: Iterable[tuple[np.ndarray, Camera, np.ndarray | None]],
 
 def triangle_components(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Connected components of a triangle mesh, triangles joined where they share an edge (as
-    open3d's cluster_connected_triangles, which took ~10x longer on a fused mesh of 3.5 M faces:
-    it walks the adjacency one triangle at a time). faces (F, 3) vertex indices. Returns
-    (label (F,) int, face count of each label)."""
+    open3d's cluster_connected_triangles, which walks the adjacency one triangle at a time: slow
+    on a fused mesh of millions of faces). faces (F, 3) vertex indices. Returns (label (F,) int,
+    face count of each label)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     f = np.asarray(faces, np.int64)
