@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene import Camera
+from .normals import dot3
 
 
 def build_scene(vertices: np.ndarray, triangles: np.ndarray):
@@ -81,6 +82,6 @@ def occluded(scene, origins: np.ndarray, targets: np.ndarray, eps: float = 1e-3)
     rays = np.concatenate([origins, d], axis=1).astype(np.float32)
     import open3d as o3d
 
-    length = np.linalg.norm(d, axis=1).max() if len(d) else 1.0
+    length = float(np.sqrt(dot3(d, d).max())) if len(d) else 1.0
     return scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0,
                                  tfar=float(1.0 - eps / max(length, 1e-9))).numpy().astype(bool)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.normals import dot3
 from .textures import Texture
 
 KINDS = ("diffuse", "glossy", "mirror", "glass_pane", "dielectric")
@@ -63,7 +64,7 @@ def _check_dn(d: np.ndarray, n: np.ndarray) -> None:
 def reflect(d: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Mirror the directions (N, 3) about the unit normals (N, 3)."""
     _check_dn(d, n)
-    return d - 2.0 * np.sum(d * n, axis=1, keepdims=True) * n
+    return d - 2.0 * dot3(d, n)[:, None] * n
 
 
 def refract(d: np.ndarray, n: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -73,12 +74,12 @@ def refract(d: np.ndarray, n: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, 
     """
     _check_dn(d, n)
     eta = np.broadcast_to(np.asarray(eta, dtype=np.float64), (len(d),))
-    cos_i = -np.sum(d * n, axis=1)
+    cos_i = -dot3(d, n)
     k = 1.0 - eta ** 2 * (1.0 - cos_i ** 2)
     tir = k < 0
     out = eta[:, None] * d + (eta * cos_i - np.sqrt(np.maximum(k, 0)))[:, None] * n
     out[tir] = 0
-    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    norm = np.sqrt(dot3(out, out))[:, None]
     return np.where(norm > 0, out / np.maximum(norm, 1e-12), 0), tir
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import raycast
+from ..geometry.normals import dot3
 from ..scene import Camera
 from .materials import (FRESNEL_NONE, fresnel_dielectric,
                         fresnel_pane, reflect, refract)
@@ -57,7 +58,8 @@ class Tracer:
     def albedo(self, mat: np.ndarray, p: np.ndarray, nf: np.ndarray) -> np.ndarray:
         """(N, 3) albedo from each material's texture on planar-projected coordinates."""
         out = np.zeros((len(p), 3))
-        ax = np.argmax(np.abs(nf), axis=1)
+        a = np.abs(nf)  # the dominant axis (argmax written out: numpy's short-axis reduction is slow)
+        ax = np.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, np.where(a[:, 1] >= a[:, 2], 1, 2))
         uv = np.where((ax == 0)[:, None], p[:, [1, 2]], np.where((ax == 1)[:, None], p[:, [0, 2]],
                                                                   p[:, [0, 1]]))
         for m in np.unique(mat):
@@ -74,9 +76,9 @@ class Tracer:
         origin = p + EPS * 5 * nf
         for L, power in zip(w.lights, w.light_power):
             to = L[None] - p
-            d2 = np.sum(to * to, axis=1)
-            cos = np.sum(ns * to, axis=1) / np.sqrt(d2)
-            lit = (cos > 0) & (np.sum(nf * to, axis=1) > 0)
+            d2 = dot3(to, to)
+            cos = dot3(ns, to) / np.sqrt(d2)
+            lit = (cos > 0) & (dot3(nf, to) > 0)
             if not lit.any():
                 continue
             idx = np.nonzero(lit)[0]
@@ -129,11 +131,11 @@ class Tracer:
             mat = self.soup.face_material[prim]
             nf = self.face_normals[prim]
             ns = self.soup.smooth_normals(prim, buv)
-            entering = np.sum(d * nf, axis=1) < 0
+            entering = dot3(d, nf) < 0
             sgn = np.where(entering, 1.0, -1.0)[:, None]
             nf, ns = nf * sgn, ns * sgn  # both now face the incoming ray
-            ns = np.where(np.sum(ns * d, axis=1, keepdims=True) < 0, ns, nf)
-            cos_i = -np.sum(d * ns, axis=1)
+            ns = np.where((dot3(ns, d) < 0)[:, None], ns, nf)
+            cos_i = -dot3(d, ns)
             k, kr, ior = self.kind[mat], self.kr[mat], self.ior[mat]
             local = self.local_radiance(mat, p, ns, nf)
             flat = tag * n + pix  # scatter-add (a pixel may have several rays in flight)
@@ -173,7 +175,7 @@ class Tracer:
             pix = np.concatenate([pix[refl], pix[tr][keep]])
             tag = np.concatenate([np.broadcast_to(r_tag, (len(r_o),)), t_tag])
             # weight of a primary child in the final image (for pruning only)
-            eff = w.max(axis=1) if depth > 0 else np.ones(len(w))
+            eff = np.maximum(np.maximum(w[:, 0], w[:, 1]), w[:, 2]) if depth > 0 else np.ones(len(w))
             live = eff > MIN_WEIGHT
             o, d, w, pix, tag = o[live], d[live], w[live], pix[live], tag[live]
         return self._finish(camera, acc, out)
@@ -227,13 +229,13 @@ class Tracer:
             mat = self.soup.face_material[prim]
             nf = self.face_normals[prim]
             k = self.kind[mat]
-            cos = np.abs(np.sum(d * nf, axis=1))
+            cos = np.abs(dot3(d, nf))
             stop = k <= 1
             result[idx[stop]] = total[idx[stop]]
             cosv[idx[stop]] = cos[stop]
             go = (k == 2) | (k == 3)  # mirrors reflect, panes transmit (a ToF sees through glass)
             p = o + t[:, None] * d
-            nfs = nf * np.where(np.sum(d * nf, axis=1) < 0, 1.0, -1.0)[:, None]
+            nfs = nf * np.where(dot3(d, nf) < 0, 1.0, -1.0)[:, None]
             newd = np.where((k == 2)[:, None], reflect(d, nfs), d)
             off = np.where((k == 2)[:, None], nfs, -nfs) * EPS
             idx, o, d = idx[go], (p + off)[go], newd[go]

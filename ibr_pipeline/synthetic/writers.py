@@ -44,13 +44,16 @@ def save_npz(path: Path, method: str = "deflate", **arrays: np.ndarray) -> None:
     method: 'deflate' (what np.savez_compressed uses), 'lzma' (3-6x smaller on depth maps, still
     read by np.load) or 'store'."""
     comp = {"deflate": zipfile.ZIP_DEFLATED, "lzma": zipfile.ZIP_LZMA, "store": zipfile.ZIP_STORED}[method]
+    # deflate level 1, not zlib's 6: the geometry files come out a few per cent larger, and
+    # compressing them no longer dominates writing a view (docs/SYNTHETIC.md)
+    level = 1 if method == "deflate" else None
     with atomic_path(Path(path)) as tmp, zipfile.ZipFile(tmp, "w", compression=comp) as zf:
         for key, arr in arrays.items():
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.asanyarray(arr), allow_pickle=False)
             info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = comp
-            zf.writestr(info, buf.getvalue())
+            zf.writestr(info, buf.getvalue(), compresslevel=level)
 
 
 def round_depth(depth: np.ndarray) -> np.ndarray:
