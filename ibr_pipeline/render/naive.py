@@ -49,11 +49,15 @@ def visible_sample(camera: Camera, depth: np.ndarray, image: np.ndarray,
 class NaiveWarp:
     """Renders new views by the naïve diffuse warp of `views` {name: (Camera, image)} over the
     mesh (vertices (V, 3), faces (F, 3)); an image is an (H, W, 3) array or a path, read on first
-    use (only the views nearest to the rendered cameras are ever read)."""
+    use (only the views nearest to the rendered cameras are ever read).
+
+    depths: {name: path of a .npy} of the mesh's z-depth already ray cast into that view (the
+    workspace's `depth_init.npy`, view_depth's cast of the same G), read instead of casting again;
+    a view without one, or whose file has another size, is cast."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, views: dict,
                  lam: float = LAMBDA, max_views: int = MAX_VIEWS, encoding: str = "linear",
-                 scene_depth: float = 1.0):
+                 scene_depth: float = 1.0, depths: dict | None = None):
         if not views:
             raise ValueError("NaiveWarp needs at least one captured view")
         self.encoding = encoding  # of the image files given by path: decoded to linear on read
@@ -62,6 +66,7 @@ class NaiveWarp:
         self.lam, self.scene_depth = lam, scene_depth  # Eq. 14's λ and D (selection.py)
         self.max_views = max_views
         self._depth: dict[str, np.ndarray] = {}
+        self._depth_files = dict(depths or {})
         self._image: dict[str, np.ndarray] = {}
         names = list(self.views)
         self._names = names
@@ -69,8 +74,13 @@ class NaiveWarp:
         self._centers = np.stack([self.views[n][0].center for n in names])
 
     def _view_depth(self, name: str) -> np.ndarray:
-        if name not in self._depth:  # ray-cast once per view, on first use
-            self._depth[name] = raycast.render_depth(self.scene, self.views[name][0])
+        if name not in self._depth:  # read or ray-cast once per view, on first use
+            cam = self.views[name][0]
+            path = self._depth_files.get(name)
+            d = np.load(path).astype(np.float64) if path is not None else None
+            if d is None or d.shape != (cam.height, cam.width):
+                d = raycast.render_depth(self.scene, cam)
+            self._depth[name] = d
         return self._depth[name]
 
     def _view_image(self, name: str) -> np.ndarray:
@@ -148,4 +158,14 @@ def from_workspace(ws, lam: float = LAMBDA, scene_depth: float = 0.0) -> NaiveWa
         from .ibr import workspace_scene_depth
         scene_depth = workspace_scene_depth(ws)
     return NaiveWarp(mesh.vertices, mesh.faces, views, lam=lam, encoding=scene.image_encoding,
-                     scene_depth=scene_depth)
+                     scene_depth=scene_depth, depths=cast_depth_files(ws, cams))
+
+
+def cast_depth_files(ws, cams) -> dict:
+    """{view: path} of the views whose `depth_init.npy` (G ray cast by view_depth) exists."""
+    out = {}
+    for name in cams:
+        p = ws.path(L.view_file(name, L.DEPTH_INIT))
+        if p.is_file():
+            out[name] = p
+    return out

@@ -73,7 +73,9 @@ def _source(ctx: StageContext, s: str) -> str:
 def inputs(ctx: StageContext) -> list[str]:
     keys = [L.render_file("test", "cameras.json"), L.render_file("test", "timings.json")]
     if ctx.config.naive and ctx.ws.path(L.GLOBAL_MESH).is_file():
+        from ..render.naive import cast_depth_files
         keys += [L.GLOBAL_MESH, L.REGISTERED_CAMERAS]
+        keys += [ctx.ws.key(p) for p in cast_depth_files(ctx.ws, L.registered_cameras(ctx.ws)).values()]
     for s in ("test", "test_single", "fly", "fly_single", "tour"):
         cams = _set_cameras(ctx, s)
         if not cams:
