@@ -237,6 +237,19 @@ class GroundTruth:
                 bar.update(1)
         return IBRModel(views, settings)
 
+    def submit_model(self, submit, layers: bool = True, step: int = GRID_STEP,
+                     settings: RenderSettings | None = None, names=None):
+        """`model` with its views built by `submit(fn, *args)` -> Future (a worker pool's submit),
+        all started now; returns finish() -> the IBRModel, which waits for them, so that the
+        caller does other work while the views are built. submit=None: built here, now."""
+        from .ibr import IBRModel
+        names = list(self.cameras) if names is None else list(names)
+        if submit is None:
+            views = [self.view(n, layers, step, settings) for n in names]
+            return lambda: IBRModel(views, settings)
+        futures = [submit(_view_task, self.root, n, layers, step, settings) for n in names]
+        return lambda: IBRModel([f.result() for f in futures], settings)
+
 
 _TRUTHS = ProcessCache(1)
 

@@ -281,7 +281,7 @@ def _run(ctx: StageContext, ex) -> None:
     import numpy as np
 
     from ..io.images import read_image, write_image
-    from ..render.video import to_display, write_mp4
+    from ..render.video import to_display
 
     ws, cfg = ctx.ws, ctx.config
     enc = ctx.scene.image_encoding
@@ -291,10 +291,13 @@ def _run(ctx: StageContext, ex) -> None:
     source = _source(ctx, "test")
     single = _set_cameras(ctx, "test_single")
     excludes = {n: (n,) if source == "leave_one_out" else () for n in test}
-    oracle = (_oracle_model(ctx, ex, [(c, excludes[n]) for n, c in test.items()])
-              if cfg.oracle and source in ("heldout", "leave_one_out") else None)
-    naive = _naive_model(ctx) if cfg.naive else None
-    naive_ms = []
+    # the oracle's views are built by the workers while this process renders the naive baseline
+    # and scores the fly-through, which do not need it
+    finish_oracle = (_oracle_model(ctx, ex, [(c, excludes[n]) for n, c in test.items()])
+                     if cfg.oracle and source in ("heldout", "leave_one_out") else None)
+    baselines, naive_ms = _naive_baselines(ctx, test, excludes) if cfg.naive else ({}, [])
+    temporal_result = _fly(ctx)
+    oracle = finish_oracle() if finish_oracle is not None else None
     rows = {"ours": [], "single": [], "oracle": [], "naive": [], "nearest": []}
     holes = _holes(ctx, "test")
     projected = _projected_reflector_masks(ctx, test) if source == "heldout_captures" else {}
@@ -315,11 +318,8 @@ def _run(ctx: StageContext, ex) -> None:
         if oracle is not None:
             f = oracle.render(cam, exclude=excludes[name])
             imgs["oracle"] = np.clip(f.color, 0, 1)
-        if naive is not None:
-            img, _, ms = naive.render(cam, exclude=excludes[name])
-            imgs["naive"] = img
-            naive_ms.append(ms)
-            entry["nearest_view"], imgs["nearest"] = naive.nearest(cam, exclude=excludes[name])
+        if name in baselines:
+            entry["nearest_view"], imgs["naive"], imgs["nearest"] = baselines.pop(name)
         # scored by the workers while this process renders the next camera's baselines
         scoring.append(ex.submit(_score_view, ref, imgs, mask, enc, cfg.flip))
         per_view.append(entry)
@@ -348,27 +348,10 @@ def _run(ctx: StageContext, ex) -> None:
         summary["oracle_gap_db"] = methods["oracle"]["psnr"] - methods["ours"]["psnr"]
     result = {"set": "test", "source": source, "summary": summary, "methods": methods,
               "per_view": per_view, "notes": "psnr_mask/ssim_mask/flip_mask: inside reflectors"}
-    fly = _set_cameras(ctx, "fly")
-    if fly:
-        fsrc = _source(ctx, "fly")
-        frames = [read_image(ws.path(L.render_file("fly", f"{i:04d}.png")), enc) for i in range(len(fly))]
-        gkeys = [_gt_image_key(ctx, "fly", n, fsrc) for n in fly]
-        gt = ([read_image(ws.path(k), enc) for k in gkeys]
-              if all(k and ws.path(k).is_file() for k in gkeys) else None)
-        result["temporal"] = {"ours": temporal(frames, gt)}
-        fs = _set_cameras(ctx, "fly_single")
-        if fs:
-            sframes = [read_image(ws.path(L.render_file("fly_single", f"{i:04d}.png")), enc)
-                       for i in range(len(fs))]
-            result["temporal"]["single"] = temporal(sframes, gt)
-        for k, v in result["temporal"]["ours"].items():
+    if temporal_result:
+        result["temporal"] = temporal_result
+        for k, v in temporal_result["ours"].items():
             summary[f"fly_{k}"] = v
-    tour = _set_cameras(ctx, "tour")  # the watchable video; else the (short) fly-through
-    if tour:  # streamed: 96 full-size frames need not be in memory at once
-        write_mp4(ws.path(L.EVAL_FLY_MP4), (read_image(ws.path(L.render_file("tour", f"{i:04d}.png")),
-                                                       enc) for i in range(len(tour))), fps=cfg.fps)
-    elif fly:
-        write_mp4(ws.path(L.EVAL_FLY_MP4), frames, fps=cfg.fps)
     _chart(ws.path(L.EVAL_METRICS_PNG), methods)
     if hist := _energy_histories(ws):
         _energy_chart(ws.path(L.EVAL_ENERGY_PNG), hist)
@@ -378,6 +361,50 @@ def _run(ctx: StageContext, ex) -> None:
              _fmt(summary.get("single_psnr")), _fmt(summary.get("oracle_psnr")),
              _fmt(summary.get("naive_psnr")), _fmt(summary.get("nearest_psnr")),
              "n/a" if "holes" not in summary else f"{100 * summary['holes']:.1f} %")
+
+
+def _naive_baselines(ctx: StageContext, test: dict, excludes: dict) -> tuple[dict, list]:
+    """{test view: (nearest view's name, naive-warp image, nearest image)} and the naive frame
+    times (ms); ({}, []) without a global mesh."""
+    naive = _naive_model(ctx)
+    if naive is None:
+        return {}, []
+    out, ms = {}, []
+    for name, cam in test.items():
+        img, _, t = naive.render(cam, exclude=excludes[name])
+        ms.append(t)
+        nearest_name, nearest_img = naive.nearest(cam, exclude=excludes[name])
+        out[name] = (nearest_name, img, nearest_img)
+    return out, ms
+
+
+def _fly(ctx: StageContext) -> dict:
+    """The fly-through's temporal stability ({} without one: {"ours": ..., "single": ...}) and
+    the video: the tour set when rendered (streamed: 96 full-size frames need not be in memory
+    at once), else the fly-through."""
+    from ..io.images import read_image
+    from ..render.video import write_mp4
+    ws, enc = ctx.ws, ctx.scene.image_encoding
+    fly, out, frames = _set_cameras(ctx, "fly"), {}, []
+    if fly:
+        fsrc = _source(ctx, "fly")
+        frames = [read_image(ws.path(L.render_file("fly", f"{i:04d}.png")), enc) for i in range(len(fly))]
+        gkeys = [_gt_image_key(ctx, "fly", n, fsrc) for n in fly]
+        gt = ([read_image(ws.path(k), enc) for k in gkeys]
+              if all(k and ws.path(k).is_file() for k in gkeys) else None)
+        out["ours"] = temporal(frames, gt)
+        fs = _set_cameras(ctx, "fly_single")
+        if fs:
+            sframes = [read_image(ws.path(L.render_file("fly_single", f"{i:04d}.png")), enc)
+                       for i in range(len(fs))]
+            out["single"] = temporal(sframes, gt)
+    tour = _set_cameras(ctx, "tour")
+    if tour:
+        write_mp4(ws.path(L.EVAL_FLY_MP4), (read_image(ws.path(L.render_file("tour", f"{i:04d}.png")),
+                                                       enc) for i in range(len(tour))), fps=ctx.config.fps)
+    elif fly:
+        write_mp4(ws.path(L.EVAL_FLY_MP4), frames, fps=ctx.config.fps)
+    return out
 
 
 def _fmt(v) -> str:
@@ -404,8 +431,9 @@ def _naive_model(ctx: StageContext):
 
 
 def _oracle_model(ctx: StageContext, ex, frames: list):
-    """The GT-built model of the views the renderer selects for `frames` [(camera, exclude)]
-    (renders as the model of every view would, `views_needed`), its views built on `ex`."""
+    """finish() -> the GT-built model of the views the renderer selects for `frames` [(camera,
+    exclude)] (renders as the model of every view would, `views_needed`), its views started on
+    `ex` now (`GroundTruth.submit_model`); None without the ground truth."""
     from ..render.ibr import views_needed
     from ..render.oracle import GroundTruth
     root = ctx.ws.input_root
@@ -416,8 +444,8 @@ def _oracle_model(ctx: StageContext, ex, frames: list):
     if not (root / "cameras.json").is_file() or not scene_is_input_frame(ctx):
         return None
     gt, settings = GroundTruth(root), _renderer_settings(ctx)
-    return gt.model(layers=True, settings=settings, names=views_needed(gt.cameras, settings, frames),
-                    map_fn=None if ex.jobs == 1 else ex.results)
+    return gt.submit_model(ex.submit if ex.jobs > 1 else None, layers=True, settings=settings,
+                           names=views_needed(gt.cameras, settings, frames))
 
 
 def _chart(path: Path, methods: dict) -> None:

@@ -76,3 +76,25 @@ def test_excluded_view_is_not_used():
     views = {"A": (_cam(0.08), red), "B": (_cam(-0.6), green)}
     img, _, _ = NaiveWarp(V, F, views).render(_cam(0.0), exclude=("A",))
     assert (img[..., 0] > 0.5).mean() < 0.01
+
+
+def test_depth_files_stand_in_for_casting(tmp_path):
+    """Views whose G depth is on disk (view_depth's depth_init.npy) are read, not cast: the same
+    frame as casting; a file of the wrong size is cast instead of trusted."""
+    V, F = _scene()
+    red, green = np.zeros((48, 64, 3), np.float32), np.zeros((48, 64, 3), np.float32)
+    red[..., 0] = 1.0
+    green[..., 1] = 1.0
+    views = {"A": (_cam(0.08), red), "B": (_cam(-0.6), green)}
+    scene = raycast.build_scene(V, F)
+    np.save(tmp_path / "A.npy", raycast.render_depth(scene, views["A"][0]).astype(np.float32))
+    np.save(tmp_path / "B.npy", np.zeros((4, 4), np.float32))      # stale: another size
+    cast_img, cast_cov, _ = NaiveWarp(V, F, views).render(_cam(0.0))
+    warp = NaiveWarp(V, F, views, depths={"A": tmp_path / "A.npy", "B": tmp_path / "B.npy"})
+    img, cov, _ = warp.render(_cam(0.0))
+    assert np.array_equal(cov, cast_cov) and np.abs(img - cast_img).max() < 1e-6
+    assert warp._view_depth("B").shape == (48, 64)
+    # the file is what is used: a depth map that hides everything from A leaves A unused
+    np.save(tmp_path / "A.npy", np.full((48, 64), 0.3, np.float32))
+    img2, _, _ = NaiveWarp(V, F, views, depths={"A": tmp_path / "A.npy"}).render(_cam(0.0))
+    assert (img2[..., 0] > 0.5).mean() < 0.01
