@@ -25,6 +25,14 @@ def _init(name: str, seed: int) -> None:
     _TRACER = Tracer(build_world(name, seed))
 
 
+def _init_worker(name: str, seed: int, threads: int) -> None:
+    """A pool worker's initializer: its share of the cores first (`executors.limit_threads`:
+    unpinned BLAS and open3d threads of two workers spin against each other), then the world."""
+    from ..executors import limit_threads
+    limit_threads(threads)
+    _init(name, seed)
+
+
 def _geom(render: dict) -> dict:
     return {"depth": round_depth(render["depth"]),
             "normal": render["normal"].astype(np.float16),
@@ -90,9 +98,12 @@ def run_tasks(opts, task, args: list[tuple], desc: str) -> list[dict]:
         return [task(a) for a in tqdm(args, **bar)]
     import multiprocessing as mp
 
+    from ..executors import worker_threads
+
     # spawn, not fork: open3d/embree thread pools do not survive a fork reliably
     ctx = mp.get_context("spawn")
-    with ctx.Pool(n_jobs, initializer=_init, initargs=(opts.name, opts.seed)) as pool:
+    with ctx.Pool(n_jobs, initializer=_init_worker,
+                  initargs=(opts.name, opts.seed, worker_threads(n_jobs))) as pool:
         return list(tqdm(pool.imap(task, args, chunksize=1), **bar))
 
 
