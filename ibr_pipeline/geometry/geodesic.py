@@ -74,8 +74,11 @@ def boundary_strength(encoded: np.ndarray, radius: int, orientations: int = 8) -
     best = np.zeros(enc.shape[:2], np.float32)
     for k in halfdisc_kernels(radius, orientations):
         d = cv2.filter2D(enc, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
-        best = np.maximum(best, np.sqrt((d * d).sum(axis=2)))
-    return best
+        # the squared distance, summed as numpy sums the length-3 axis (the same bits); sqrt
+        # is monotonic and correctly rounded, so the root of the maximum is the maximum root
+        np.maximum(best, d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2],
+                   out=best)
+    return np.sqrt(best)
 
 
 def colour_edge_map(image: np.ndarray, strokes: np.ndarray | None = None,

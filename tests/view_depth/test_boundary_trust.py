@@ -62,6 +62,19 @@ def test_boundary_strength_keeps_outlines_and_fades_texture():
         geo.boundary_strength(enc[..., 0], 4)
 
 
+def test_boundary_strength_is_the_max_norm_of_the_half_disc_differences():
+    """Reference: per orientation, the Euclidean norm of the filtered colour difference, then the
+    maximum; the stage's form (maximum of squared norms, one root) gives the same bits."""
+    import cv2
+    enc = geo.encode_for_edges(_dotted_foreground(), 0.0)
+    for r in (2, 4):
+        ref = np.zeros(enc.shape[:2], np.float32)
+        for k in geo.halfdisc_kernels(r):
+            d = cv2.filter2D(enc, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+            ref = np.maximum(ref, np.sqrt((d * d).sum(axis=2)))
+        assert np.array_equal(geo.boundary_strength(enc, r), ref)
+
+
 def test_eq2_does_not_leak_the_wall_into_a_dotted_foreground():
     """G's edge is 6 px inside the foreground (the wall's depth covers its rim). With plain edges
     every dot costs as much to cross as the outline, so Eq. 2 fills much of the rim from the wall;
