@@ -292,12 +292,16 @@ def _run(ctx: StageContext, ex) -> None:
     single = _set_cameras(ctx, "test_single")
     excludes = {n: (n,) if source == "leave_one_out" else () for n in test}
     # the oracle's views are built by the workers while this process renders the naive baseline
-    # and scores the fly-through, which do not need it
+    # and scores the fly-through, which do not need it (without an oracle the baselines are
+    # rendered camera by camera below: a real capture's held-out set need not be in memory)
     finish_oracle = (_oracle_model(ctx, ex, [(c, excludes[n]) for n, c in test.items()])
                      if cfg.oracle and source in ("heldout", "leave_one_out") else None)
-    baselines, naive_ms = _naive_baselines(ctx, test, excludes) if cfg.naive else ({}, [])
+    naive = _naive_model(ctx) if cfg.naive else None
+    baselines = ({n: _naive_baseline(naive, c, excludes[n]) for n, c in test.items()}
+                 if naive is not None and finish_oracle is not None else {})
     temporal_result = _fly(ctx)
     oracle = finish_oracle() if finish_oracle is not None else None
+    naive_ms = []
     rows = {"ours": [], "single": [], "oracle": [], "naive": [], "nearest": []}
     holes = _holes(ctx, "test")
     projected = _projected_reflector_masks(ctx, test) if source == "heldout_captures" else {}
@@ -318,9 +322,11 @@ def _run(ctx: StageContext, ex) -> None:
         if oracle is not None:
             f = oracle.render(cam, exclude=excludes[name])
             imgs["oracle"] = np.clip(f.color, 0, 1)
-        if name in baselines:
-            entry["nearest_view"], imgs["naive"], imgs["nearest"] = baselines.pop(name)
-        # scored by the workers while this process renders the next camera's baselines
+        if naive is not None:
+            base = baselines.pop(name) if name in baselines else _naive_baseline(naive, cam, excludes[name])
+            entry["nearest_view"], imgs["naive"], imgs["nearest"], ms = base
+            naive_ms.append(ms)
+        # scored by the workers while this process renders the next camera
         scoring.append(ex.submit(_score_view, ref, imgs, mask, enc, cfg.flip))
         per_view.append(entry)
         err = np.repeat(np.clip(np.abs(ours - ref).mean(2, keepdims=True) * 4, 0, 1), 3, 2)
@@ -363,19 +369,11 @@ def _run(ctx: StageContext, ex) -> None:
              "n/a" if "holes" not in summary else f"{100 * summary['holes']:.1f} %")
 
 
-def _naive_baselines(ctx: StageContext, test: dict, excludes: dict) -> tuple[dict, list]:
-    """{test view: (nearest view's name, naive-warp image, nearest image)} and the naive frame
-    times (ms); ({}, []) without a global mesh."""
-    naive = _naive_model(ctx)
-    if naive is None:
-        return {}, []
-    out, ms = {}, []
-    for name, cam in test.items():
-        img, _, t = naive.render(cam, exclude=excludes[name])
-        ms.append(t)
-        nearest_name, nearest_img = naive.nearest(cam, exclude=excludes[name])
-        out[name] = (nearest_name, img, nearest_img)
-    return out, ms
+def _naive_baseline(naive, cam, exclude) -> tuple:
+    """(nearest view's name, naive-warp image, nearest image, naive frame ms) of one camera."""
+    img, _, ms = naive.render(cam, exclude=exclude)
+    nearest_name, nearest_img = naive.nearest(cam, exclude=exclude)
+    return nearest_name, img, nearest_img, ms
 
 
 def _fly(ctx: StageContext) -> dict:
