@@ -12,7 +12,8 @@ PKG = Path(__file__).resolve().parents[1] / "ibr_pipeline"
 
 # layer of each top-level module / subpackage of ibr_pipeline, lowest first
 LAYERS = {
-    "foundation": {"errors", "scene", "config", "layout", "workspace", "cache", "metrics", "io"},
+    "foundation": {"errors", "scene", "config", "layout", "workspace", "cache", "metrics", "flip_ldr",
+                   "threads", "io"},
     "geometry": {"geometry"},
     "algorithms": {"render", "raytree", "nn"},
     "synthetic": {"synthetic"},

@@ -26,9 +26,9 @@ def _init(name: str, seed: int) -> None:
 
 
 def _init_worker(name: str, seed: int, threads: int) -> None:
-    """A pool worker's initializer: its share of the cores first (`executors.limit_threads`:
+    """A pool worker's initializer: its share of the cores first (`threads.limit_threads`:
     unpinned BLAS and open3d threads of two workers spin against each other), then the world."""
-    from ..executors import limit_threads
+    from ..threads import limit_threads
     limit_threads(threads)
     _init(name, seed)
 
@@ -98,7 +98,7 @@ def run_tasks(opts, task, args: list[tuple], desc: str) -> list[dict]:
         return [task(a) for a in tqdm(args, **bar)]
     import multiprocessing as mp
 
-    from ..executors import worker_threads
+    from ..threads import worker_threads
 
     # spawn, not fork: open3d/embree thread pools do not survive a fork reliably
     ctx = mp.get_context("spawn")
