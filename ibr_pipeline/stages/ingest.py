@@ -141,6 +141,7 @@ def run(ctx: StageContext) -> None:
 
 def _run(ctx: StageContext, staging: Path) -> None:
     import os
+    from concurrent.futures import ThreadPoolExecutor
 
     from tqdm import tqdm
 
@@ -160,22 +161,34 @@ def _run(ctx: StageContext, staging: Path) -> None:
     if len(cap.frames) < cfg.min_views:
         raise InputError(f"{root}: {len(cap.frames)} image(s) found, ingest.min_views is {cfg.min_views}")
     views, done = _prepare(ctx, cap, where)
-    for view in tqdm(views, desc="ingest: checking images", unit="img", leave=False,
-                     disable=not ctx.progress):
+
+    def sizes(view):
         path = where(view.image)
-        if cfg.check_pixels:
-            h, w = read_image(path).shape[:2]
-        else:
-            w, h = image_size(path)
-        if view.camera is not None and (view.camera.width, view.camera.height) != (w, h):
-            raise InputError(f"{path}: image is {w}x{h} but its camera says "
-                             f"{view.camera.width}x{view.camera.height}")
-        if view.depth is not None:
+        w, h = (read_image(path).shape[1::-1] if cfg.check_pixels else image_size(path))
+        return (w, h), (None if view.depth is None else read_depth_png(where(view.depth)).shape)
+
+    # the files are decoded --jobs at a time (the decoders release the GIL); the first bad view
+    # in the input's order is the one reported, as when they were read one by one, and the
+    # files not yet read then are not read
+    pool = ThreadPoolExecutor(max(1, ctx.jobs))
+    try:
+        checked = zip(views, pool.map(sizes, views))
+        for view, ((w, h), dshape) in tqdm(checked, total=len(views), desc="ingest: checking "
+                                           "images", unit="img", leave=False,
+                                           disable=not ctx.progress):
+            path = where(view.image)
+            if view.camera is not None and (view.camera.width, view.camera.height) != (w, h):
+                raise InputError(f"{path}: image is {w}x{h} but its camera says "
+                                 f"{view.camera.width}x{view.camera.height}")
+            if dshape is None:
+                continue
             dpath = where(view.depth)
-            dh, dw = read_depth_png(dpath).shape
+            dh, dw = dshape
             if abs(dw / dh - w / h) > 0.01 * (w / h):
                 raise InputError(f"{dpath}: depth is {dw}x{dh}, which does not have the aspect "
                                  f"ratio of its {w}x{h} image (depth must cover the same view)")
+    finally:
+        pool.shutdown(cancel_futures=True)
     sparse = None
     if cap.sparse is not None:
         if done["undistorted"]:
