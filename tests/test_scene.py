@@ -138,6 +138,22 @@ def test_depth_png_is_millimetres(tmp_path):
     np.testing.assert_allclose(back, [[0, 1.234, 0], [0, 0, 2.0]], atol=1e-6)  # 1 mm steps; invalid -> 0
 
 
+def test_png_round_trip_keeps_every_pixel_and_channel_order(tmp_path):
+    """write_image's PNGs read back by PIL (an independent decoder) as the same 8-bit values, in
+    RGB(A) order: grey, RGB, RGBA, and 16-bit depth in millimetres."""
+    from PIL import Image
+    rng = np.random.default_rng(0)
+    for shape in [(7, 5), (7, 5, 3), (7, 5, 4)]:
+        a = rng.integers(0, 256, shape, dtype=np.uint8)
+        a[0, 0] = 255 if a.ndim == 2 else [255, 0, 0, 255][:shape[2]]   # pure red: not BGR
+        write_image(tmp_path / "a.png", a)
+        np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "a.png")), a)
+    mm = rng.integers(0, 65536, (6, 9)).astype(np.float64)
+    write_depth_png(tmp_path / "d.png", mm / 1000.0)
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "d.png")).astype(np.int64),
+                                  mm.astype(np.int64))
+
+
 def test_reflectors_parse_and_validate(tmp_path):
     r = Reflector.from_dict({"name": "m", "plane": [0, 2, 0, -4], "beta": 0.5}, "r")
     np.testing.assert_allclose(r.plane, [0, 1, 0, -2])
