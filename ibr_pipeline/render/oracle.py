@@ -218,35 +218,28 @@ class GroundTruth:
         return ViewData(name, cam, (LayerData(v0, f0, i0, alpha0, beta), LayerData(v1, f1, i1, alpha1)))
 
     def model(self, layers: bool = True, step: int = GRID_STEP, settings: RenderSettings | None = None,
-              names=None, progress: bool = False, map_fn=None):
-        """The IBRModel of the GT-built views, in view order. map_fn(fn, argsets) -> iterator of
-        (index, fn(*argsets[index])) in any order builds them elsewhere (worker processes: each
-        its own GroundTruth, the mirrored ray-casting scenes do not pickle); None: here."""
+              names=None, progress: bool = False):
+        """The IBRModel of the GT-built views, in view order, built here (`submit_model` builds
+        them in worker processes)."""
         from tqdm import tqdm
 
         from .ibr import IBRModel
         names = list(self.cameras) if names is None else list(names)
-        views = [None] * len(names)
-        with tqdm(total=len(names), desc="oracle views", disable=not progress, leave=False) as bar:
-            if map_fn is None:
-                done = ((i, self.view(n, layers, step, settings)) for i, n in enumerate(names))
-            else:
-                done = map_fn(_view_task, [(self.root, n, layers, step, settings) for n in names])
-            for i, v in done:
-                views[i] = v
-                bar.update(1)
+        views = [self.view(n, layers, step, settings)
+                 for n in tqdm(names, desc="oracle views", disable=not progress, leave=False)]
         return IBRModel(views, settings)
 
     def submit_model(self, submit, layers: bool = True, step: int = GRID_STEP,
                      settings: RenderSettings | None = None, names=None):
-        """`model` with its views built by `submit(fn, *args)` -> Future (a worker pool's submit),
-        all started now; returns finish() -> the IBRModel, which waits for them, so that the
-        caller does other work while the views are built. submit=None: built here, now."""
+        """`model` with its views built by `submit(fn, *args)` -> Future (a worker pool's submit:
+        each worker its own GroundTruth, the mirrored ray-casting scenes do not pickle), all
+        started now; returns finish() -> the IBRModel, which waits for them, so that the caller
+        does other work while the views are built. submit=None: built here, now."""
         from .ibr import IBRModel
-        names = list(self.cameras) if names is None else list(names)
         if submit is None:
-            views = [self.view(n, layers, step, settings) for n in names]
-            return lambda: IBRModel(views, settings)
+            built = self.model(layers, step, settings, names)
+            return lambda: built
+        names = list(self.cameras) if names is None else list(names)
         futures = [submit(_view_task, self.root, n, layers, step, settings) for n in names]
         return lambda: IBRModel([f.result() for f in futures], settings)
 

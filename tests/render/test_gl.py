@@ -105,14 +105,15 @@ def test_two_layers_beat_single_layer_in_the_mirror(sample_scene):
 
 
 def test_oracle_views_built_in_workers_match_in_process(tiny):
-    """GroundTruth.model over a 2-worker pool builds each view in a worker process: the same
-    meshes, textures, alphas and betas, in the same order, as the in-process build."""
+    """GroundTruth.submit_model on a 2-worker pool (evaluate's oracle) builds each view in a
+    worker process: the same meshes, textures, alphas and betas, in the same order, as the
+    in-process build."""
     from ibr_pipeline.executors import LocalExecutor
     root, gt, model, _ = tiny
     names = list(gt.cameras)[:3]
     one = gt.model(layers=True, names=names)
     with LocalExecutor(2) as ex:
-        two = gt.model(layers=True, names=names, map_fn=ex.results)
+        two = gt.submit_model(ex.submit, layers=True, names=names)()
     assert [v.name for v in two.views] == [v.name for v in one.views] == names
     for a, b in zip(one.views, two.views):
         assert len(a.layers) == len(b.layers)
