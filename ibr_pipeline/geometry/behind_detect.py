@@ -46,6 +46,8 @@ class BehindOptions(Options):
                              min=1e-4, max=1.0)
     mirror_ratio: float = param(0.5, "verification: mirror-warp / surface-warp error below which "
                                 "the mirrored G explains it", min=0.01, max=10.0)
+    pooled: bool = param(True, "also look for holes through a plane pooled over the views "
+                         "(geometry/plane_holes.py): a reflector no view sees whole")
 
 
 _D = BehindOptions()
@@ -200,26 +202,54 @@ def _hull_on_plane(plane, polygons: list) -> np.ndarray:
     return origin + Q[:, :1] * u + Q[:, 1:] * v
 
 
+def _seen_in(cams: dict, polygon) -> int:
+    """Views whose frame holds the polygon's centre (part of it may be out of frame)."""
+    from .decompose_terms import project
+    seen = 0
+    for cam in cams.values():
+        p, z = project(cam, np.asarray(polygon, np.float64).mean(0)[None])
+        seen += bool(z[0] > 0 and np.all((p >= 0) & (p <= [cam.width - 1, cam.height - 1])))
+    return seen
+
+
+def _candidate(name, view, outline, plane, polygon, views, seen, behind, enclosed, min_views,
+               how) -> dict:
+    need = max(2, int(np.ceil(min_views * max(seen, 1))))
+    return {
+        "name": name, "view": view,
+        "outline": [[float(u), float(v)] for u, v in outline],
+        "plane": [float(x) for x in plane],
+        "polygon": [[float(x) for x in p] for p in polygon],
+        "views": views, "seen_in": seen, "behind": behind, "enclosed": enclosed,
+        "kept": len(views) >= need,
+        "reason": (f"depth behind its plane (median {behind:.2f} x the plane's depth), {how}, "
+                   f"in {len(views)} of the {seen} views that hold it"
+                   + ("" if len(views) >= need else f", {need} needed"))}
+
+
 def find_candidates(cams: dict, depths: dict, min_views: float = _D.min_views,
-                    progress: bool = False, **kw) -> list[dict]:
+                    progress: bool = False, pooled: bool = _D.pooled, **kw) -> list[dict]:
     """Reflector candidates of a capture from its depth maps. cams: name -> Camera; depths:
     name -> (h, w) z-depth (any size, 0 = none). Every view's planes (`view_planes`) and the
     regions behind them (`behind_outlines`, options `kw`) are placed on the surface around them
     (`planes.plane_from_outline`) and grouped (`merge_candidates`); a group is a candidate when
     it was found in at least `min_views` of the views whose frame holds its centre (depth noise
-    of a few views is not). Returns every group as a dict: name, view (the view it is best seen
-    in), outline there, plane, polygon (the hull of the group's polygons on that plane), views
-    (names found in), seen_in (views whose frame holds its centre), behind, enclosed, kept,
-    reason."""
+    of a few views is not). With `pooled`, the holes through those planes that no view saw
+    whole (`plane_holes.find_plane_holes`, the same limits) are candidates too, unless one of
+    the groups is that reflector already. Returns every candidate as a dict: name, view (the
+    view it is best seen in), outline there, plane, polygon (the hull of the group's polygons
+    on that plane), views (names found in), seen_in (views whose frame holds its centre),
+    behind, enclosed, kept, reason."""
     from tqdm import tqdm
 
     from .decompose_terms import project
     from .planes import plane_from_outline
-    found = []
+    found, vplanes = [], {}
     for n in tqdm(list(depths), desc="global_mesh: regions behind planes", unit="view",
                   disable=not progress, leave=False):
         cam, d = cams[n], depths[n]
-        for pl in view_planes(cam, d):
+        vplanes[n] = view_planes(cam, d)
+        for pl in vplanes[n]:
             for c in behind_outlines(cam, d, pl, **kw):
                 try:
                     plane, poly = plane_from_outline(cam, d, c["outline"])
@@ -230,24 +260,26 @@ def find_candidates(cams: dict, depths: dict, min_views: float = _D.min_views,
     for i, g in enumerate(merge_candidates(found, min_views=2)):
         best = g[0]
         hull = _hull_on_plane(best["plane"], [f["polygon"] for f in g])
-        seen = 0  # views whose frame holds its centre (part of it may be out of frame)
-        for cam in cams.values():
-            p, z = project(cam, hull.mean(0)[None])
-            seen += bool(z[0] > 0 and np.all((p >= 0) & (p <= [cam.width - 1, cam.height - 1])))
-        seen = max(seen, len({f["view"] for f in g}))
         views = sorted({f["view"] for f in g})
-        need = max(2, int(np.ceil(min_views * max(seen, 1))))
-        behind = float(np.median([f["behind"] for f in g]))
-        out.append({
-            "name": f"behind_{i}", "view": best["view"],
-            "outline": [[float(u), float(v)] for u, v in best["outline"]],
-            "plane": [float(x) for x in best["plane"]],
-            "polygon": [[float(x) for x in p] for p in hull],
-            "views": views, "seen_in": seen, "behind": behind,
-            "enclosed": float(np.median([f["enclosed"] for f in g])), "kept": len(views) >= need,
-            "reason": (f"depth behind its plane (median {behind:.2f} x the plane's depth), enclosed "
-                       f"by it, in {len(views)} of the {seen} views that hold it"
-                       + ("" if len(views) >= need else f", {need} needed"))})
+        out.append(_candidate(
+            f"behind_{i}", best["view"], best["outline"], best["plane"], hull, views,
+            max(_seen_in(cams, hull), len(views)), float(np.median([f["behind"] for f in g])),
+            float(np.median([f["enclosed"] for f in g])), min_views, "enclosed by it"))
+    if not pooled:
+        return out
+    from .plane_holes import find_plane_holes
+    holes = find_plane_holes(cams, depths, vplanes,
+                             **{k: kw[k] for k in ("behind", "enclosed") if k in kw})
+    for h in holes:
+        if any(same_reflector(h, c["plane"], c["polygon"]) or
+               same_reflector(c, h["plane"], h["polygon"]) for c in out):
+            continue  # found by one view already, or a second plane of a hole kept here
+        cam = cams[h["view"]]
+        uv, _ = project(cam, h["polygon"])
+        out.append(_candidate(
+            f"hole_{len(out)}", h["view"], uv, h["plane"], h["polygon"], h["views"],
+            max(_seen_in(cams, h["polygon"]), len(h["views"])), h["behind"], h["enclosed"],
+            min_views, "a hole through it pooled over the views"))
     return out
 
 

@@ -354,7 +354,7 @@ def _find_reflectors(ctx, cams, depths, mesh, given=()) -> tuple[list, list[dict
     o = ctx.config.behind
     cands = find_candidates(cams, {n: d for n, (d, _) in depths.items()}, min_views=o.min_views,
                             progress=show, behind=o.behind, enclosed=o.enclosed, border=o.border,
-                            min_area=o.min_area, max_area=o.max_area)
+                            min_area=o.min_area, max_area=o.max_area, pooled=o.pooled)
     for c in cands:
         same = next((r.name for r in given if same_reflector(c, r.plane, r.polygon)), None)
         if c["kept"] and same is not None:
@@ -405,4 +405,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="the global mesh of the training views (RGB-D TSDF "
               "fusion or MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="8", run=run, inputs=inputs, outputs=outputs)
+              config=GlobalMeshConfig, version="9", run=run, inputs=inputs, outputs=outputs)
