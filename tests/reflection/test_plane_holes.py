@@ -116,3 +116,64 @@ def test_pooled_grid_counts_surface_and_through_samples():
         view_samples(cams, {"v0": depths["v0"][None]})
     with pytest.raises(ValueError, match="plane"):
         pooled_grid(WALL[:3], view_samples(cams, depths), 0.03)
+
+
+def _close_capture(src):
+    """An RGB-D input of test_behind_detect's ray-cast room whose mirror no view sees whole:
+    six narrow views each aimed at a part of it, and three that see the right-hand wall, which
+    the mirror shows (the mirror warp needs the reflected room in G)."""
+    from ibr_pipeline.geometry.raycast import build_scene
+    from ibr_pipeline.io.images import write_depth_png, write_image
+    from ibr_pipeline.scene import cameras_to_json
+    from tests.reflection.test_behind_detect import _photos, _room
+    narrow = np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]])
+    wide = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
+    aims = [[1.75, 4, 1.25], [2.25, 4, 1.25], [2.25, 4, 1.75], [1.75, 4, 1.75], [2.0, 4, 1.3],
+            [2.0, 4, 1.7]]
+    cams = {f"m{i}.png": Camera.look_at([0.6 + 0.12 * i, 1.4 + 0.1 * (i % 2), 1.3 + 0.04 * i],
+                                        a, (0, 0, 1), narrow, 160, 120) for i, a in enumerate(aims)}
+    cams.update({f"w{i}.png": Camera.look_at([1.0 + 0.3 * i, 1.5, 1.4], [4.0, 2.5 + 0.5 * i, 1.5],
+                                             (0, 0, 1), wide, 160, 120) for i in range(3)})
+    V, F = _room(niche=False)
+    photos, depths = _photos(build_scene(V, F), cams, True, depth=True)
+    (src / "images").mkdir(parents=True)
+    (src / "depth").mkdir()
+    for n in cams:
+        write_image(src / "images" / n, photos[n], "srgb")
+        write_depth_png(src / "depth" / n, depths[n])
+    (src / "cameras.json").write_text(cameras_to_json(cams))
+
+
+@pytest.mark.parametrize("pooled", [True, False])
+def test_global_mesh_finds_a_mirror_no_view_sees_whole(pooled, tmp_path):
+    """No reflectors.json, every view of the mirror cut by its frame: only the pooled grid
+    finds it; found, it is verified and its mirror world is fused out of G."""
+    import json
+
+    from ibr_pipeline.cli import main
+    from ibr_pipeline.io.mesh import read_ply
+    from tests.reflection.test_behind_detect import HOLE, MIRROR
+    src = tmp_path / "input"
+    _close_capture(src)
+    ws = tmp_path / "ws"
+    assert main(["run", str(ws), "--input", str(src), "--until", "global_mesh",
+                 "--set", "global_mesh.progress=false",
+                 "--set", f"global_mesh.behind.pooled={str(pooled).lower()}"]) == 0
+    found = json.loads((ws / "global" / "found_reflectors.json").read_text())
+    report = json.loads((ws / "global" / "report.json").read_text())
+    Vg = read_ply(ws / "global" / "mesh.ply").vertices
+    behind = ((Vg[:, 1] > 4.2) & (np.abs(Vg[:, 0] - 2.0) < 0.5)).mean()
+    if not pooled:
+        assert found["reflectors"] == [] and report["mirror_world"].startswith("NOT masked")
+        assert behind > 0.005, behind
+        return
+    (r,) = found["reflectors"]
+    assert r["name"].startswith("hole_")
+    n = np.asarray(r["plane"][:3])
+    assert np.degrees(np.arccos(min(1.0, abs(n @ MIRROR[:3])))) < 1.0
+    poly = np.asarray(r["polygon"])
+    assert np.abs(poly @ MIRROR[:3] + MIRROR[3]).max() < 0.02
+    assert np.all(np.abs(poly.min(0) - HOLE.min(0)) < 0.1), poly.min(0)
+    assert np.all(np.abs(poly.max(0) - HOLE.max(0)) < 0.1), poly.max(0)
+    assert report["mirror_world"].startswith("masked in 1")
+    assert behind < 1e-4, behind
