@@ -211,17 +211,13 @@ def test_a_region_behind_the_wall_in_every_view_is_one_candidate():
     assert find_candidates({"v0": cams["v0"]}, {"v0": depths["v0"]}) == []
 
 
-def _capture(src, mirror: bool):
-    """An RGB-D input folder (images/, depth/, cameras.json) of the ray-cast room."""
+def write_capture(src, cams: dict, mirror: bool, niche: bool = False):
+    """An RGB-D input folder (images/, depth/, cameras.json) of the ray-cast room seen by
+    `cams` (name -> Camera)."""
     from ibr_pipeline.geometry.raycast import build_scene
     from ibr_pipeline.io.images import write_depth_png, write_image
     from ibr_pipeline.scene import cameras_to_json
-    K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
-    # seen from the left, the mirror shows the right-hand wall, which the cameras see directly
-    # too (a mirror showing only what no camera sees cannot be told from a hole by this cue)
-    cams = {f"v{i}.png": Camera.look_at([0.5 + 0.12 * i, 1.4 + 0.1 * (i % 2), 1.3 + 0.04 * i],
-                                        [2.4, 3.6, 1.5], (0, 0, 1), K, 160, 120) for i in range(8)}
-    V, F = _room(niche=not mirror)
+    V, F = _room(niche=niche)
     photos, depths = _photos(build_scene(V, F), cams, mirror, depth=True)
     (src / "images").mkdir(parents=True)
     (src / "depth").mkdir()
@@ -229,6 +225,15 @@ def _capture(src, mirror: bool):
         write_image(src / "images" / n, photos[n], "srgb")
         write_depth_png(src / "depth" / n, depths[n])
     (src / "cameras.json").write_text(cameras_to_json(cams))
+
+
+def _capture(src, mirror: bool):
+    K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
+    # seen from the left, the mirror shows the right-hand wall, which the cameras see directly
+    # too (a mirror showing only what no camera sees cannot be told from a hole by this cue)
+    cams = {f"v{i}.png": Camera.look_at([0.5 + 0.12 * i, 1.4 + 0.1 * (i % 2), 1.3 + 0.04 * i],
+                                        [2.4, 3.6, 1.5], (0, 0, 1), K, 160, 120) for i in range(8)}
+    write_capture(src, cams, mirror, niche=not mirror)
 
 
 @pytest.mark.parametrize("mirror", [True, False])

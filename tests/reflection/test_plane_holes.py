@@ -122,10 +122,7 @@ def _close_capture(src):
     """An RGB-D input of test_behind_detect's ray-cast room whose mirror no view sees whole:
     six narrow views each aimed at a part of it, and three that see the right-hand wall, which
     the mirror shows (the mirror warp needs the reflected room in G)."""
-    from ibr_pipeline.geometry.raycast import build_scene
-    from ibr_pipeline.io.images import write_depth_png, write_image
-    from ibr_pipeline.scene import cameras_to_json
-    from tests.reflection.test_behind_detect import _photos, _room
+    from tests.reflection.test_behind_detect import write_capture
     narrow = np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]])
     wide = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
     aims = [[1.75, 4, 1.25], [2.25, 4, 1.25], [2.25, 4, 1.75], [1.75, 4, 1.75], [2.0, 4, 1.3],
@@ -134,14 +131,7 @@ def _close_capture(src):
                                         a, (0, 0, 1), narrow, 160, 120) for i, a in enumerate(aims)}
     cams.update({f"w{i}.png": Camera.look_at([1.0 + 0.3 * i, 1.5, 1.4], [4.0, 2.5 + 0.5 * i, 1.5],
                                              (0, 0, 1), wide, 160, 120) for i in range(3)})
-    V, F = _room(niche=False)
-    photos, depths = _photos(build_scene(V, F), cams, True, depth=True)
-    (src / "images").mkdir(parents=True)
-    (src / "depth").mkdir()
-    for n in cams:
-        write_image(src / "images" / n, photos[n], "srgb")
-        write_depth_png(src / "depth" / n, depths[n])
-    (src / "cameras.json").write_text(cameras_to_json(cams))
+    write_capture(src, cams, mirror=True)
 
 
 @pytest.mark.parametrize("pooled", [True, False])
