@@ -8,7 +8,8 @@ the wall the reflector hangs on (Xu et al. §4.1 take the reflectors from the us
 that lies well behind a plane of that view and is enclosed by that plane's own depth is such a
 hole through the wall. `behind_outlines` finds them in one depth map and returns each as an
 outline in that view's pixels, the form a user gives (`planes.plane_from_outline` then places
-it); `merge_candidates` keeps those found at the same place in several views. A window, a
+it); `merge_candidates` keeps those found at the same place in several views, and
+`plane_holes` the holes no single view sees whole, pooled over the views. A window, a
 doorway or a niche is also geometry behind a plane: the `reflectors` stage scores every candidate
 with the multi-view cue (reflector_detect.py) and keeps only those a reflection explains.
 """

@@ -144,7 +144,8 @@ def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict
     pooled grid of `cell` x the median depth (`pooled_grid`) and its holes (`grid_holes`).
     Returns per hole, largest first: plane (4,), polygon (K, 3) (convex hull of its cells on
     the plane), views (those that saw through at least 5 % of it), view (the one that saw
-    most of it), cells, enclosed, behind (mean relative depth behind the plane)."""
+    most of it), cells, enclosed, behind (median over its cells of the mean relative depth
+    behind the plane)."""
     import cv2
     depths = {n: np.asarray(d) for n, d in depths.items()}
     coarse = [d[::4, ::4] for d in depths.values()]  # the scale, not a measurement: a subsample
@@ -181,5 +182,6 @@ def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict
             out.append({"plane": pl, "polygon": origin + a[:, None] * u + b[:, None] * v,
                         "views": saw, "view": max(saw, key=share.get), "cells": h["cells"],
                         "enclosed": h["enclosed"],
-                        "behind": float(rel_sum[m].sum() / max(through[m].sum(), 1))})
+                        "behind": float(np.median(rel_sum[m & (through > 0)]
+                                                  / through[m & (through > 0)]))})
     return sorted(out, key=lambda h: -h["cells"])
