@@ -183,7 +183,8 @@ def reflections(rep, per_reflector: int = 2) -> None:
             return (rep.fact(v, planes_src, f"candidates.{i}.score.{key}")
                     if isinstance(v, (int, float)) else "-")
         blocks.append(("p", f"Reflector detection: {len(cands)} candidates — regions seen behind "
-                            "a plane of the depth maps (behind_*, stage global_mesh) and planes of "
+                            "a plane of the depth maps (behind_* in one view, hole_* pooled over "
+                            "the views; stage global_mesh) and planes of "
                             "the global mesh (stage reflectors) — each with its evidence and the "
                             "reason it was kept or dropped (docs/REFLECTION.md, Detection)."))
         blocks.append(("table", ["candidate", "verdict", "views", "surface-warp error",

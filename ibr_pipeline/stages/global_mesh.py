@@ -7,7 +7,7 @@ COLMAP / ACMM style; the default) or the fronto-parallel plane sweep (geometry/m
 geometric consistency. Each view's MVS depth is kept for view_depth's completion. Reflectors (reflectors.json) are replaced
 by their plane in every depth map before fusion, so the mirror world never enters G; without
 them, reflectors are looked for in the depth (regions behind a plane that the mirrored G
-explains, geometry/behind_detect.py) and G is fused again without the ones found. The module
+explains, geometry/behind_detect.py and plane_holes.py) and G is fused again without the ones found. The module
 only loads, calls and saves; docs/GLOBAL_MESH.md explains the choices.
 """
 from __future__ import annotations
@@ -53,8 +53,9 @@ class GlobalMeshConfig(StageConfig):
     fusion: FusionOptions = param(FusionOptions(), "TSDF fusion of the depth frames")
     reflector_fill: bool = param(True, "replace reflector pixels by the reflector plane (else drop them)")
     find_reflectors: str = param("auto", "find reflectors in the MVS depth: regions seen behind a "
-                                 "plane of a view, enclosed by it, in many views, that the "
-                                 "mirrored mesh explains (geometry/behind_detect.py); they are "
+                                 "plane, enclosed by it in a view or on the views pooled, in "
+                                 "many views, that the mirrored mesh explains "
+                                 "(geometry/behind_detect.py, plane_holes.py); they are "
                                  "masked out of G like reflectors.json's. 'auto' = only when no "
                                  "reflectors.json is given", choices=("auto", "on", "off"))
     behind: BehindOptions = param(BehindOptions(), "finding reflectors behind planes "
