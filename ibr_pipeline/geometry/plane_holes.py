@@ -48,13 +48,15 @@ def view_samples(cams: dict[str, Camera], depths: dict, samples: int = 20000) ->
 
 
 def pooled_grid(plane, samples: dict, cell: float, *, behind: float = _D.behind,
-                on_plane: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple, dict]:
+                on_plane: float = 0.02, max_cells: int = 4_000_000
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple, dict]:
     """Counts of surface and seen-through samples per `cell`-sized square of `plane` (4,),
     over every view's `samples` (`view_samples`). A ray meets the plane at X with z-depth zp;
     its measured depth d is surface when -`behind` < d / zp - 1 < `on_plane`, seen through when
-    d / zp - 1 > `behind`. Returns (surface (H, W), through (H, W) counts, the sum of d / zp - 1
-    of the through samples (H, W), (origin, u, v, u0, v0) to map cells back to the plane,
-    {view: cells (K,) flat indices it saw through the plane})."""
+    d / zp - 1 > `behind`. A plane whose extent would take more than `max_cells` cells (a floor
+    seen to the horizon) gets larger cells. Returns (surface (H, W), through (H, W) counts, the
+    sum of d / zp - 1 of the through samples (H, W), (origin, u, v, u0, v0, cell) to map cells
+    back to the plane, {view: cells (K,) flat indices it saw through the plane})."""
     p = np.asarray(plane, np.float64)
     if p.shape != (4,):
         raise ValueError(f"plane must be (4,), got {p.shape}")
@@ -69,17 +71,21 @@ def pooled_grid(plane, samples: dict, cell: float, *, behind: float = _D.behind,
         rel = d[ok] / zp[ok] - 1.0
         surf, thru = (rel > -behind) & (rel < on_plane), rel > behind
         P = c - origin + zp[ok, None] * dirs[ok]
-        q = np.floor(np.c_[P @ u, P @ v] / cell).astype(np.int64)
-        per_view[n] = (q[surf], q[thru], rel[thru])
+        ab = np.c_[P @ u, P @ v]
+        per_view[n] = (ab[surf], ab[thru], rel[thru])
     empty = np.zeros((0, 0), np.float64)
-    surf_q = [s for s, _, _ in per_view.values() if len(s)]
-    if not surf_q:
-        return empty, empty, empty, (origin, u, v, 0, 0), {}
-    surf_q = np.concatenate(surf_q)
+    surf_ab = [s for s, _, _ in per_view.values() if len(s)]
+    if not surf_ab:
+        return empty, empty, empty, (origin, u, v, 0, 0, cell), {}
+    surf_ab = np.concatenate(surf_ab)
     # a hole lies inside the plane's own extent; its outermost 0.1 % are strays (a ray grazing
     # another surface where it crosses the plane's line), which would stretch the grid
-    lo = np.floor(np.percentile(surf_q, 0.05, axis=0)).astype(np.int64)
-    hi = np.ceil(np.percentile(surf_q, 99.95, axis=0)).astype(np.int64)
+    lo_ab, hi_ab = np.percentile(surf_ab, [0.05, 99.95], axis=0)
+    cell = max(cell, float(np.sqrt(np.prod(hi_ab - lo_ab + 1e-12) / max_cells)))
+    lo = np.floor(lo_ab / cell).astype(np.int64)
+    hi = np.floor(hi_ab / cell).astype(np.int64)
+    cells = lambda ab: np.floor(ab / cell).astype(np.int64)  # noqa: E731
+    surf_q = cells(surf_ab)
     surf_q = surf_q[np.all((surf_q >= lo) & (surf_q <= hi), axis=1)]
     H, W = int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1)
     flat = lambda q: (q[:, 1] - lo[1]) * W + (q[:, 0] - lo[0])  # noqa: E731
@@ -87,13 +93,14 @@ def pooled_grid(plane, samples: dict, cell: float, *, behind: float = _D.behind,
     through, rel_sum = np.zeros(H * W), np.zeros(H * W)
     seen = {}
     for n, (_, t, r) in per_view.items():
+        t = cells(t)
         inside = np.all((t >= lo) & (t <= hi), axis=1)
         idx = flat(t[inside])
         through += np.bincount(idx, minlength=H * W)
         rel_sum += np.bincount(idx, r[inside], minlength=H * W)
         seen[n] = np.unique(idx)
     return (surface.reshape(H, W), through.reshape(H, W), rel_sum.reshape(H, W),
-            (origin, u, v, int(lo[0]), int(lo[1])), seen)
+            (origin, u, v, int(lo[0]), int(lo[1]), cell), seen)
 
 
 def grid_holes(surface: np.ndarray, through: np.ndarray, *, min_cells: int = 30,
@@ -165,7 +172,7 @@ def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict
     for pl, views in planes:
         if len(views) < 2:
             continue
-        surface, through, rel_sum, (origin, u, v, u0, v0), seen = pooled_grid(
+        surface, through, rel_sum, (origin, u, v, u0, v0, size), seen = pooled_grid(
             pl, lattice, cell * med, behind=behind)
         for h in grid_holes(surface, through, min_cells=min_cells, enclosed=enclosed):
             flat = np.flatnonzero(h["mask"].ravel())
@@ -177,7 +184,7 @@ def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict
             ys, xs = np.nonzero(h["mask"])
             pts = np.c_[np.r_[xs, xs + 1, xs, xs + 1], np.r_[ys, ys, ys + 1, ys + 1]]
             hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
-            a, b = (hull[:, 0] + u0) * cell * med, (hull[:, 1] + v0) * cell * med
+            a, b = (hull[:, 0] + u0) * size, (hull[:, 1] + v0) * size
             m = h["mask"]
             out.append({"plane": pl, "polygon": origin + a[:, None] * u + b[:, None] * v,
                         "views": saw, "view": max(saw, key=share.get), "cells": h["cells"],

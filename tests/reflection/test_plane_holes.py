@@ -105,13 +105,18 @@ def test_grid_holes_needs_a_ring_of_surface():
 
 def test_pooled_grid_counts_surface_and_through_samples():
     cams, depths = _views(n=2)
-    s, t, r, (origin, u, v, u0, v0), seen = pooled_grid(WALL, view_samples(cams, depths), 0.03)
-    assert s.shape == t.shape == r.shape and set(seen) == {"v0", "v1"}
+    lattice = view_samples(cams, depths)
+    s, t, r, (origin, u, v, u0, v0, cell), seen = pooled_grid(WALL, lattice, 0.03)
+    assert s.shape == t.shape == r.shape and set(seen) == {"v0", "v1"} and cell == 0.03
     inside = t > 0
     assert inside.any() and np.allclose(r[inside] / t[inside], 0.6, atol=0.05)
     # every lattice sample with depth lands in one of the two counts or neither, never both
     n = sum(len(z) for _, _, z in view_samples(cams, depths).values())
     assert s.sum() + t.sum() <= n and s.sum() > 0.5 * n
+    # a grid capped at fewer cells takes larger ones, the same samples in them
+    s2, t2, _, (*_, cell2), _ = pooled_grid(WALL, lattice, 0.03, max_cells=s.size // 4)
+    assert s2.size < s.size / 3 and cell2 == pytest.approx(0.06, rel=0.05), (s2.shape, cell2)
+    assert s2.sum() == pytest.approx(s.sum(), rel=0.01) and t2.sum() == pytest.approx(t.sum(), rel=0.01)
     with pytest.raises(ValueError, match="v0"):
         view_samples(cams, {"v0": depths["v0"][None]})
     with pytest.raises(ValueError, match="plane"):
