@@ -269,8 +269,8 @@ def find_candidates(cams: dict, depths: dict, min_views: float = _D.min_views,
     if not pooled:
         return out
     from .plane_holes import find_plane_holes
-    holes = find_plane_holes(cams, depths, vplanes,
-                             **{k: kw[k] for k in ("behind", "enclosed") if k in kw})
+    holes = find_plane_holes(cams, depths, vplanes, behind=kw.get("behind", _D.behind),
+                             enclosed=kw.get("enclosed", _D.enclosed))
     for h in holes:
         if any(same_reflector(h, c["plane"], c["polygon"]) or
                same_reflector(c, h["plane"], h["polygon"]) for c in out):

@@ -16,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene import Camera
-from .behind_detect import _D, view_planes
 from .planes import plane_basis
 
 
@@ -47,8 +46,8 @@ def view_samples(cams: dict[str, Camera], depths: dict, samples: int = 20000) ->
     return out
 
 
-def pooled_grid(plane, samples: dict, cell: float, *, behind: float = _D.behind,
-                on_plane: float = 0.02, max_cells: int = 4_000_000
+def pooled_grid(plane, samples: dict, cell: float, *, behind: float, on_plane: float = 0.02,
+                max_cells: int = 4_000_000
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple, dict]:
     """Counts of surface and seen-through samples per `cell`-sized square of `plane` (4,),
     over every view's `samples` (`view_samples`). A ray meets the plane at X with z-depth zp;
@@ -103,8 +102,8 @@ def pooled_grid(plane, samples: dict, cell: float, *, behind: float = _D.behind,
             (origin, u, v, int(lo[0]), int(lo[1]), cell), seen)
 
 
-def grid_holes(surface: np.ndarray, through: np.ndarray, *, min_cells: int = 30,
-               enclosed: float = _D.enclosed, ring: int = 2, min_ring_seen: float = 0.3
+def grid_holes(surface: np.ndarray, through: np.ndarray, *, enclosed: float, min_cells: int = 30,
+               ring: int = 2, min_ring_seen: float = 0.3
                ) -> list[dict]:
     """Regions of a pooled grid seen through the plane (more through- than surface samples),
     closed by one cell, of at least `min_cells` cells, not touching the grid's edge (the
@@ -142,26 +141,24 @@ def grid_holes(surface: np.ndarray, through: np.ndarray, *, min_cells: int = 30,
     return out
 
 
-def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict | None = None, *,
-                     cell: float = 0.01, behind: float = _D.behind,
-                     enclosed: float = _D.enclosed, min_cells: int = 30) -> list[dict]:
+def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict, *,
+                     behind: float, enclosed: float, cell: float = 0.01,
+                     min_cells: int = 30) -> list[dict]:
     """Holes through the planes of a capture's depth maps, pooled over all views. Each view's
-    largest planes (`view_planes_of`: name -> planes, else `view_planes`) are merged across
-    views (`same_plane`, within 2 % of the median depth); each plane found in 2 views gets a
-    pooled grid of `cell` x the median depth (`pooled_grid`) and its holes (`grid_holes`).
-    Returns per hole, largest first: plane (4,), polygon (K, 3) (convex hull of its cells on
-    the plane), views (those that saw through at least 5 % of it), view (the one that saw
-    most of it), cells, enclosed, behind (median over its cells of the mean relative depth
-    behind the plane)."""
+    largest planes (`view_planes_of`: name -> planes (4,), `behind_detect.view_planes`) are
+    merged across views (`same_plane`, within 2 % of the median depth); each plane found in 2
+    views gets a pooled grid of `cell` x the median depth (`pooled_grid`, `behind`) and its
+    holes (`grid_holes`, `enclosed`). Returns per hole, largest first: plane (4,), polygon
+    (K, 3) (convex hull of its cells on the plane), views (those that saw through at least 5 %
+    of it), view (the one that saw most of it), cells, enclosed, behind (median over its cells
+    of the mean relative depth behind the plane)."""
     import cv2
     depths = {n: np.asarray(d) for n, d in depths.items()}
     coarse = [d[::4, ::4] for d in depths.values()]  # the scale, not a measurement: a subsample
     med = float(np.median([np.median(d[d > 0]) for d in coarse if (d > 0).any()] or [1.0]))
     planes: list[tuple[np.ndarray, set]] = []
-    for n, d in depths.items():
-        found = (view_planes_of[n] if view_planes_of is not None
-                 else view_planes(cams[n].resized(d.shape[1], d.shape[0]), d))
-        for pl in found:
+    for n in depths:
+        for pl in view_planes_of.get(n, ()):
             for p, views in planes:
                 if same_plane(p, pl, med):
                     views.add(n)

@@ -5,7 +5,8 @@ not holes; the result does not depend on the capture's unit of length."""
 import numpy as np
 import pytest
 
-from ibr_pipeline.geometry.behind_detect import behind_outlines, find_candidates, view_planes
+from ibr_pipeline.geometry.behind_detect import (BehindOptions, behind_outlines, find_candidates,
+                                                 view_planes)
 from ibr_pipeline.geometry.plane_holes import (find_plane_holes, grid_holes, pooled_grid,
                                                view_samples)
 from ibr_pipeline.geometry.planes import plane_basis, ray_plane_hits
@@ -16,6 +17,13 @@ WALL = np.r_[np.array([0.12, 0.08, -1.0]) / np.linalg.norm([0.12, 0.08, -1.0]), 
 CENTRE = np.array([0.3, 0.0, 3.2])
 WALL[3] = -WALL[:3] @ CENTRE
 HALF = (0.9, 0.6)  # the opening's half sizes along the wall's u and v axes
+D = BehindOptions()
+
+
+def _holes(cams, depths):
+    """find_plane_holes with the stage's defaults and each view's planes."""
+    planes = {n: view_planes(cams[n], d) for n, d in depths.items()}
+    return find_plane_holes(cams, depths, planes, behind=D.behind, enclosed=D.enclosed)
 
 
 def _views(scale=1.0, factor=1.6, half=HALF, edge=None, n=4):
@@ -52,7 +60,7 @@ def test_no_view_sees_the_opening_whole_so_no_view_outlines_it():
 @pytest.mark.parametrize("scale", [1.0, 1000.0])
 def test_the_views_pooled_find_one_hole_the_size_of_the_opening(scale):
     cams, depths = _views(scale)
-    (h,) = find_plane_holes(cams, depths)
+    (h,) = _holes(cams, depths)
     assert h["views"] == ["v0", "v1", "v2", "v3"] and h["enclosed"] > 0.9
     assert h["behind"] == pytest.approx(0.6, abs=0.03)
     poly = h["polygon"] / scale
@@ -80,12 +88,12 @@ def test_find_candidates_adds_the_pooled_hole_only_when_asked():
 ])
 def test_what_is_not_a_hole_through_the_wall_is_none(kw, why):
     cams, depths = _views(**kw)
-    assert find_plane_holes(cams, depths) == [], why
+    assert _holes(cams, depths) == [], why
 
 
 def test_a_hole_seen_by_one_view_only_is_none():
     cams, depths = _views(n=1)
-    assert find_plane_holes(cams, depths) == []
+    assert _holes(cams, depths) == []
 
 
 def test_grid_holes_needs_a_ring_of_surface():
@@ -93,20 +101,21 @@ def test_grid_holes_needs_a_ring_of_surface():
     through = np.zeros((40, 60))
     surface[10:25, 20:40], through[10:25, 20:40] = 0, 5        # enclosed
     surface[0:12, 50:60], through[0:12, 50:60] = 0, 5          # on the grid's corner
-    (h,) = grid_holes(surface, through)  # 3x3 counts round the four corners off
+    # 3x3 counts round the hole's four corners off
+    (h,) = grid_holes(surface, through, enclosed=D.enclosed)
     assert abs(h["cells"] - 15 * 20) <= 4 and h["mask"][15, 30] and not h["mask"][5, 55]
     # a ring mostly unobserved is no evidence of a hole
     surface2 = np.zeros_like(surface)
     surface2[10:25, 20:40] = 0
-    assert grid_holes(surface2, through) == []
+    assert grid_holes(surface2, through, enclosed=D.enclosed) == []
     with pytest.raises(ValueError, match="surface"):
-        grid_holes(surface, through[:, :10])
+        grid_holes(surface, through[:, :10], enclosed=D.enclosed)
 
 
 def test_pooled_grid_counts_surface_and_through_samples():
     cams, depths = _views(n=2)
     lattice = view_samples(cams, depths)
-    s, t, r, (origin, u, v, u0, v0, cell), seen = pooled_grid(WALL, lattice, 0.03)
+    s, t, r, (origin, u, v, u0, v0, cell), seen = pooled_grid(WALL, lattice, 0.03, behind=D.behind)
     assert s.shape == t.shape == r.shape and set(seen) == {"v0", "v1"} and cell == 0.03
     inside = t > 0
     assert inside.any() and np.allclose(r[inside] / t[inside], 0.6, atol=0.05)
@@ -114,13 +123,15 @@ def test_pooled_grid_counts_surface_and_through_samples():
     n = sum(len(z) for _, _, z in view_samples(cams, depths).values())
     assert s.sum() + t.sum() <= n and s.sum() > 0.5 * n
     # a grid capped at fewer cells takes larger ones, the same samples in them
-    s2, t2, _, (*_, cell2), _ = pooled_grid(WALL, lattice, 0.03, max_cells=s.size // 4)
+    s2, t2, _, (*_, cell2), _ = pooled_grid(WALL, lattice, 0.03, behind=D.behind,
+                                            max_cells=s.size // 4)
     assert s2.size < s.size / 3 and cell2 == pytest.approx(0.06, rel=0.05), (s2.shape, cell2)
-    assert s2.sum() == pytest.approx(s.sum(), rel=0.01) and t2.sum() == pytest.approx(t.sum(), rel=0.01)
+    assert s2.sum() == pytest.approx(s.sum(), rel=0.01)
+    assert t2.sum() == pytest.approx(t.sum(), rel=0.01)
     with pytest.raises(ValueError, match="v0"):
         view_samples(cams, {"v0": depths["v0"][None]})
     with pytest.raises(ValueError, match="plane"):
-        pooled_grid(WALL[:3], view_samples(cams, depths), 0.03)
+        pooled_grid(WALL[:3], view_samples(cams, depths), 0.03, behind=D.behind)
 
 
 def _close_capture(src):
