@@ -16,13 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene import Camera
-from .planes import plane_basis
-
-
-def same_plane(a, b, depth: float, angle_deg: float = 5.0, rel: float = 0.02) -> bool:
-    """Planes (4,) with normals within `angle_deg` and offsets closer than `rel` of `depth`."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return bool(a[:3] @ b[:3] > np.cos(np.radians(angle_deg)) and abs(a[3] - b[3]) < rel * depth)
+from .planes import plane_basis, same_plane
 
 
 def view_samples(cams: dict[str, Camera], depths: dict, samples: int = 20000) -> dict:
@@ -124,20 +118,27 @@ def grid_holes(surface: np.ndarray, through: np.ndarray, *, enclosed: float, min
     is_through = (through > surface).astype(np.uint8)
     k3 = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
     is_through = cv2.morphologyEx(is_through, cv2.MORPH_CLOSE, k3)
-    n, labels = cv2.connectedComponents(is_through, connectivity=8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(is_through, connectivity=8)
     kr = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ring + 1,) * 2)
+    H, W = labels.shape
     out = []
     for i in range(1, n):
-        m = labels == i
-        if m.sum() < min_cells or m[[0, -1]].any() or m[:, [0, -1]].any():
+        x, y, w, h, area = stats[i]
+        if area < min_cells or x == 0 or y == 0 or x + w == W or y + h == H:
             continue                                # too small, or on the plane's extent edge
+        # the component and its ring lie in its box widened by the ring: work there, not on
+        # the whole grid (a plane's grid can hold millions of cells and hundreds of specks)
+        box = (slice(max(0, y - ring), y + h + ring), slice(max(0, x - ring), x + w + ring))
+        m = labels[box] == i
         around = (cv2.dilate(m.astype(np.uint8), kr) > 0) & ~m
-        seen = around & observed
+        seen = around & observed[box]
         if seen.sum() < min_ring_seen * max(around.sum(), 1):
             continue
-        enc = float(((surface >= through) & seen).sum() / max(seen.sum(), 1))
+        enc = float(((surface[box] >= through[box]) & seen).sum() / max(seen.sum(), 1))
         if enc >= enclosed:
-            out.append({"mask": m, "cells": int(m.sum()), "enclosed": enc})
+            mask = np.zeros((H, W), bool)
+            mask[box] = m
+            out.append({"mask": mask, "cells": int(area), "enclosed": enc})
     return out
 
 
@@ -146,7 +147,7 @@ def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict
                      min_cells: int = 30) -> list[dict]:
     """Holes through the planes of a capture's depth maps, pooled over all views. Each view's
     largest planes (`view_planes_of`: name -> planes (4,), `behind_detect.view_planes`) are
-    merged across views (`same_plane`, within 2 % of the median depth); each plane found in 2
+    merged across views (`planes.same_plane`, within 2 % of the median depth); each plane found in 2
     views gets a pooled grid of `cell` x the median depth (`pooled_grid`, `behind`) and its
     holes (`grid_holes`, `enclosed`). Returns per hole, largest first: plane (4,), polygon
     (K, 3) (convex hull of its cells on the plane), views (those that saw through at least 5 %
@@ -160,7 +161,7 @@ def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict
     for n in depths:
         for pl in view_planes_of.get(n, ()):
             for p, views in planes:
-                if same_plane(p, pl, med):
+                if same_plane(p, pl, offset=0.02 * med):
                     views.add(n)
                     break
             else:

@@ -43,6 +43,16 @@ def fit_plane(points: np.ndarray) -> np.ndarray:
     return np.r_[n, -n @ c]
 
 
+def same_plane(a, b, angle_deg: float = 5.0, offset: float = 0.05) -> bool:
+    """Planes (4,) with normals within `angle_deg` (either orientation) and offsets closer than
+    `offset` (scene units)."""
+    na, nb = np.asarray(a[:3], np.float64), np.asarray(b[:3], np.float64)
+    cos, db = float(na @ nb), float(b[3])
+    if cos < 0:
+        cos, db = -cos, -db
+    return cos > np.cos(np.radians(angle_deg)) and abs(float(a[3]) - db) < offset
+
+
 def plane_basis(plane) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(origin on the plane, u axis, v axis): an orthonormal frame of the plane."""
     p = _plane(plane)

@@ -346,15 +346,6 @@ def detect_enabled(ws, cfg: "ReflectorsConfig") -> bool:
     return cfg.detect == "on"
 
 
-def _same_plane(a, b, angle_deg=5.0, offset=0.05) -> bool:
-    import numpy as np
-    na, nb = np.asarray(a[:3]), np.asarray(b[:3])
-    cos = float(na @ nb)
-    if cos < 0:
-        cos, b = -cos, [-x for x in b]
-    return cos > np.cos(np.radians(angle_deg)) and abs(a[3] - b[3]) < offset
-
-
 def plane_candidates(loader: Loader) -> list[dict]:
     """The planar pieces of G (RANSAC on an area-proportional sample), normals towards the
     cameras: what detection scores."""
@@ -448,9 +439,10 @@ def compute_planes(loader: Loader, score_all=None) -> dict:
         cands = plane_candidates(loader)
         scored = (score_all(loader, cands) if score_all is not None
                   else [score_plane(loader, c) for c in cands])
+    from .planes import same_plane
     merged = list(user)  # user planes win; among detections the best-supported piece wins
     for d in sorted((c for c in scored if c["kept"]), key=lambda d: -(d["score"].get("pairs") or 0)):
-        same = next((u["name"] for u in merged if _same_plane(d["plane"], u["plane"])), None)
+        same = next((u["name"] for u in merged if same_plane(d["plane"], u["plane"])), None)
         if same is None:
             merged.append(d)
         else:
