@@ -184,8 +184,11 @@ class FusionOptions(Options):
                              "scene points' depth ranges (global/poses.json)", min=0.0, max=1e6)
     weight_threshold: float = param(0.5, "marching cubes only where the summed TSDF weight "
                                     "(frames) reaches this", min=0.0, max=1000.0)
-    min_component: float = param(0.002, "drop connected components below this fraction of all "
-                                 "faces", min=0.0, max=0.5)
+    # 0.02 %, not 0.2 %: a near object (a placard, a chair back) is few voxels but many pixels,
+    # and at 0.2 % of a real capture's fragmented MVS surface it went with the noise
+    # (docs/GLOBAL_MESH.md, docs/BENCHMARKS.md "Real captures")
+    min_component: float = param(0.0002, "drop connected components below this fraction of all "
+                                 "faces (fusion noise, floating blobs)", min=0.0, max=0.5)
     block_resolution: int = param(8, "voxels per side of a VoxelBlockGrid block", min=2, max=64)
     block_count: int = param(40000, "VoxelBlockGrid blocks allocated", min=100, max=10**8)
     device: str = param("CPU:0", "open3d device of the grid", affects_output=False)
