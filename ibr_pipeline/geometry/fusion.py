@@ -184,7 +184,7 @@ class FusionOptions(Options):
                              "scene points' depth ranges (global/poses.json)", min=0.0, max=1e6)
     weight_threshold: float = param(0.5, "marching cubes only where the summed TSDF weight "
                                     "(frames) reaches this", min=0.0, max=1000.0)
-    # 0.02 %, not 0.2 %: a near object (a placard, a chair back) is few voxels but many pixels,
+    # 0.02 %, not 0.2 %: a near object (llff_horns' placard) is few voxels but many pixels,
     # and at 0.2 % of a real capture's fragmented MVS surface it went with the noise
     # (docs/GLOBAL_MESH.md, docs/BENCHMARKS.md "Real captures")
     min_component: float = param(0.0002, "drop connected components below this fraction of all "

@@ -1,7 +1,7 @@
 """tsdf_fuse's component filter (`FusionOptions.min_component`) with its default: a small object
 near a camera is few voxels but many pixels, and must survive; specks of a few depth pixels are
-fusion noise and must not. On llff_horns the old default (0.2 % of the faces) dropped a placard
-in the foreground of 8 held-out photos (docs/BENCHMARKS.md, "Real captures", session 41)."""
+fusion noise and must not. On llff_horns the old default (0.2 % of the faces) dropped the placard
+in the foreground of most photos (docs/BENCHMARKS.md, "Real captures", session 41)."""
 import numpy as np
 import pytest
 
