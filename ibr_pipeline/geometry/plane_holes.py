@@ -183,10 +183,9 @@ def find_plane_holes(cams: dict[str, Camera], depths: dict, view_planes_of: dict
             pts = np.c_[np.r_[xs, xs + 1, xs, xs + 1], np.r_[ys, ys, ys + 1, ys + 1]]
             hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
             a, b = (hull[:, 0] + u0) * size, (hull[:, 1] + v0) * size
-            m = h["mask"]
+            m = h["mask"] & (through > 0)
             out.append({"plane": pl, "polygon": origin + a[:, None] * u + b[:, None] * v,
                         "views": saw, "view": max(saw, key=share.get), "cells": h["cells"],
                         "enclosed": h["enclosed"],
-                        "behind": float(np.median(rel_sum[m & (through > 0)]
-                                                  / through[m & (through > 0)]))})
+                        "behind": float(np.median(rel_sum[m] / through[m]))})
     return sorted(out, key=lambda h: -h["cells"])

@@ -36,10 +36,8 @@ def test_a_small_card_near_one_camera_survives_the_default_filter(scene):
     root, cams = scene
     c0 = cams[sorted(cams)[0]]
     d0 = read_depth_png(root / "depth" / sorted(cams)[0]).astype(np.float64)
-    R = c0.R
-    centre = -R.T @ c0.t
-    fwd, right, up = R.T @ np.array([0, 0, 1.0]), R.T @ np.array([1, 0, 0.0]), R.T @ np.array([0, 1, 0.0])
-    mid = centre + fwd * 0.4 * float(np.median(d0[d0 > 0]))   # well in front of the room
+    fwd, right, up = c0.viewing_direction, c0.R[0], c0.R[1]
+    mid = c0.center + fwd * 0.4 * float(np.median(d0[d0 > 0]))   # well in front of the room
     half = 0.05
     card = np.array([mid + half * (a * right + b * up) for a, b in [(-1, -1), (1, -1), (1, 1), (-1, 1)]])
     plane = np.r_[fwd, -fwd @ mid]
@@ -81,8 +79,7 @@ def test_specks_of_a_few_depth_pixels_are_removed(scene):
             y, x = int(rng.integers(5, d.shape[0] - 5)), int(rng.integers(5, d.shape[1] - 5))
             z = 0.5 * d[y, x]
             d[y:y + 2, x:x + 2] = z
-            p = np.linalg.inv(cam.K) @ np.array([x + 1.0, y + 1.0, 1.0]) * z
-            specks.append(cam.R.T @ (p - cam.t))
+            specks.append(cam.unproject(np.array([[x + 1.0, y + 1.0]]), np.array([z]))[0])
         return d
 
     def near_specks(mesh, pts):
