@@ -96,13 +96,16 @@ def polygon_mask(camera: Camera, polygon: np.ndarray, near: float = 1e-3) -> np.
 
 
 def reflector_mask(camera: Camera, depth: np.ndarray, reflector: Reflector, rel_tol: float = 0.02,
-                   view_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   view_mask: np.ndarray | None = None, refuted: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of a depth frame that see `reflector` (or the mirror world through it).
 
     Returns (mask (H, W) bool, plane z-depth (H, W)). A pixel is masked when it lies inside the
     reflector's extent (its polygon projected into the camera, else the user's per-view mask
     `view_mask`, else the whole image) AND its measured depth is at or behind the plane (depth >=
-    plane depth x (1 - rel_tol)) or missing. Objects in front of the reflector are kept.
+    plane depth x (1 - rel_tol)) or missing. Objects in front of the reflector are kept, except
+    the pixels of `refuted` (H, W) bool inside the extent (`reflector_floaters`: depth in front
+    of it that the other frames see through).
     """
     depth = np.asarray(depth, dtype=np.float64)
     if depth.shape != (camera.height, camera.width):
@@ -117,13 +120,19 @@ def reflector_mask(camera: Camera, depth: np.ndarray, reflector: Reflector, rel_
     else:
         extent = np.ones(depth.shape, bool)  # plane only: everything seen behind the plane
     behind = (depth <= 0) | (depth >= zp * (1.0 - rel_tol))
+    if refuted is not None:
+        if refuted.shape != depth.shape:
+            raise ValueError(f"refuted {refuted.shape} does not match depth {depth.shape}")
+        behind = behind | refuted
     return extent & np.isfinite(zp) & behind, zp
 
 
 def apply_reflectors(camera: Camera, depth: np.ndarray, reflectors: Sequence[Reflector],
                      fill: bool = True, view_masks: dict[str, np.ndarray] | None = None,
-                     rel_tol: float = 0.02) -> tuple[np.ndarray, int]:
-    """Depth frame with reflector pixels replaced by the plane depth (fill) or 0 (no fill).
+                     rel_tol: float = 0.02, refuted: dict[str, np.ndarray] | None = None
+                     ) -> tuple[np.ndarray, int]:
+    """Depth frame with reflector pixels (`reflector_mask`, with `refuted`[reflector name] when
+    given) replaced by the plane depth (fill) or 0 (no fill).
 
     Returns (new depth, number of pixels changed). Reflectors without polygon or mask are skipped
     here only when `fill` is True (filling a whole plane would invent geometry); without fill they
@@ -139,10 +148,56 @@ def apply_reflectors(camera: Camera, depth: np.ndarray, reflectors: Sequence[Ref
             m &= out > 0          # only drop measured mirror-world points, invent nothing
             out[m] = 0
         else:
-            m, zp = reflector_mask(camera, out, r, rel_tol, vm)
+            m, zp = reflector_mask(camera, out, r, rel_tol, vm, (refuted or {}).get(r.name))
             out[m] = zp[m] if fill else 0
         changed |= m
     return out, int(changed.sum())
+
+
+def reflector_floaters(frames: dict, reflector: Reflector, rel_tol: float = 0.02,
+                       agree: float = 0.05) -> dict[str, np.ndarray]:
+    """{frame name: (H, W) bool}: depth in front of `reflector` that the other frames refute.
+
+    `frames`: {name: (depth (H, W), Camera at that size)}. A pixel inside the reflector's polygon
+    whose depth lies in front of the plane (by more than `rel_tol`) is a surface point X. Another
+    frame that sees X's pixel farther away than X (by more than `agree`, relative) looks through
+    X, so X is not there (a free-space violation, as in the stability-based fusion of Merrell et
+    al. 2007); one whose depth there is X's (within `agree`) confirms it; a nearer depth or none
+    says nothing. A point refuted by more frames than confirm it is flagged: MVS's wrong matches
+    of the highlights on a screen float in front of it, where the other views see the screen, and
+    an object standing before a mirror is where every view that sees it puts it. Reflectors
+    without a polygon, and glass, flag nothing."""
+    out: dict[str, np.ndarray] = {}
+    if reflector.polygon is None or reflector.material == "glass":
+        return out
+    poly = np.asarray(reflector.polygon)
+    for name, (depth, cam) in frames.items():
+        d = np.asarray(depth, np.float64)
+        if d.shape != (cam.height, cam.width):
+            raise ValueError(f"{name}: depth {d.shape} does not match its camera "
+                             f"{cam.height}x{cam.width}")
+        front = polygon_mask(cam, poly) & (d > 0) & (d < plane_depth(cam, reflector.plane) * (1.0 - rel_tol))
+        vs, us = np.nonzero(front)
+        if len(vs) == 0:
+            continue
+        X = cam.unproject(np.c_[us, vs].astype(np.float64), d[vs, us])
+        confirm = np.zeros(len(X), np.int32)
+        refute = np.zeros(len(X), np.int32)
+        for other, (dj, cj) in frames.items():
+            if other == name:
+                continue
+            uv, z = cj.project(X)
+            iu, iv = np.round(uv[:, 0]), np.round(uv[:, 1])
+            ok = (z > 0) & (iu >= 0) & (iu < cj.width) & (iv >= 0) & (iv < cj.height)
+            seen = np.zeros(len(X))
+            seen[ok] = np.asarray(dj)[iv[ok].astype(int), iu[ok].astype(int)]
+            ok &= seen > 0
+            confirm += ok & (np.abs(seen - z) <= agree * z)
+            refute += ok & (seen > z * (1.0 + agree))
+        m = np.zeros(d.shape, bool)
+        m[vs, us] = refute > confirm
+        out[name] = m
+    return out
 
 
 def mirror_world_points(points: np.ndarray, reflectors: Sequence[Reflector],

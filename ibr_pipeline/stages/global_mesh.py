@@ -52,6 +52,11 @@ class GlobalMeshConfig(StageConfig):
                        "auto = rgbd when every view has depth", choices=("auto", "rgbd", "mvs"))
     fusion: FusionOptions = param(FusionOptions(), "TSDF fusion of the depth frames")
     reflector_fill: bool = param(True, "replace reflector pixels by the reflector plane (else drop them)")
+    # MVS matches a screen's highlights at wrong depths, in front of it (llff_room21's TV); fused,
+    # they float there and cut holes in its reflection mask (docs/GLOBAL_MESH.md "Reflectors")
+    reflector_floaters: bool = param(True, "MVS depth in front of a reflector's polygon that the "
+                                     "other views see through (more refute it than confirm it) "
+                                     "is taken as the reflector (fusion.reflector_floaters)")
     find_reflectors: str = param("auto", "find reflectors in the MVS depth: regions seen behind a "
                                  "plane, enclosed by it in a view or on the views pooled, in "
                                  "many views, that the mirrored mesh explains "
@@ -228,7 +233,7 @@ def _mvs_depths(ctx, cams, ranges, report) -> dict:
 
 
 def run(ctx: StageContext) -> None:
-    from ..geometry.fusion import apply_reflectors, tsdf_fuse
+    from ..geometry.fusion import apply_reflectors, reflector_floaters, tsdf_fuse
     from ..io.images import read_image
     from ..io.mesh import write_ply
 
@@ -276,12 +281,18 @@ def run(ctx: StageContext) -> None:
         if dense == "rgbd":
             frames = _depth_frames(ctx, cams, depth_views, refls, view_masks, stats)
         else:
+            floaters = {r.name: reflector_floaters(depths, r) for r in refls
+                        if cfg.reflector_floaters}
+            stats["floater_pixels"] = sum(int(m.sum()) for f in floaters.values() for m in f.values())
+
             def _mvs_frames():
                 for n, (d, c) in depths.items():
                     if refls:
                         # masks are image-sized: resize to the working size
                         vm = {k: _resize_mask(m, c.size) for k, m in view_masks.get(n, {}).items()}
-                        d, k = apply_reflectors(c, d, refls, cfg.reflector_fill, vm)
+                        refuted = {k: f[n] for k, f in floaters.items() if n in f}
+                        d, k = apply_reflectors(c, d, refls, cfg.reflector_fill, vm,
+                                                refuted=refuted)
                         stats["reflector_pixels"] += k
                     yield d, c, read_image(ws.path(scene.view(n).image), scene.image_encoding)
             frames = _mvs_frames()
@@ -317,6 +328,7 @@ def run(ctx: StageContext) -> None:
     report.update(counts={"views": len(cams), "depth_frames": len(depth_views),
                           "reflectors": len(reflectors), "found_reflectors": len(found),
                           "reflector_pixels": stats["reflector_pixels"],
+                          "floater_pixels": stats.get("floater_pixels", 0),
                           "mesh_vertices": len(mesh.vertices), "mesh_faces": len(mesh.faces)},
                   mirror_world="masked by reflectors.json" if reflectors else
                   f"masked in {len(found)} reflector(s) found behind planes" if found else
@@ -406,4 +418,4 @@ def _resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 STAGE = Stage(name="global_mesh", help="the global mesh of the training views (RGB-D TSDF "
               "fusion or MVS), reflectors masked (Xu §4.1)",
-              config=GlobalMeshConfig, version="9", run=run, inputs=inputs, outputs=outputs)
+              config=GlobalMeshConfig, version="10", run=run, inputs=inputs, outputs=outputs)
