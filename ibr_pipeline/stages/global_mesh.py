@@ -284,6 +284,11 @@ def run(ctx: StageContext) -> None:
             floaters = {r.name: reflector_floaters(depths, r) for r in refls
                         if cfg.reflector_floaters}
             stats["floater_pixels"] = sum(int(m.sum()) for f in floaters.values() for m in f.values())
+            if stats["floater_pixels"]:
+                log.info("global_mesh: %d MVS pixels in front of %s, seen through by more views "
+                         "than see them, taken as the reflector (reflector_floaters)",
+                         stats["floater_pixels"],
+                         ", ".join(k for k, f in floaters.items() if any(m.any() for m in f.values())))
 
             def _mvs_frames():
                 for n, (d, c) in depths.items():
