@@ -155,7 +155,7 @@ def apply_reflectors(camera: Camera, depth: np.ndarray, reflectors: Sequence[Ref
 
 
 def reflector_floaters(frames: dict, reflector: Reflector, rel_tol: float = 0.02,
-                       agree: float = 0.05) -> dict[str, np.ndarray]:
+                       agree: float = 0.05, max_views: int = 24) -> dict[str, np.ndarray]:
     """{frame name: (H, W) bool}: depth in front of `reflector` that the other frames refute.
 
     `frames`: {name: (depth (H, W), Camera at that size)}. A pixel inside the reflector's polygon
@@ -166,7 +166,11 @@ def reflector_floaters(frames: dict, reflector: Reflector, rel_tol: float = 0.02
     says nothing. A point refuted by more frames than confirm it is flagged: MVS's wrong matches
     of the highlights on a screen float in front of it, where the other views see the screen, and
     an object standing before a mirror is where every view that sees it puts it. Reflectors
-    without a polygon, and glass, flag nothing."""
+    without a polygon, and glass, flag nothing. Each frame is checked against the `max_views`
+    others (0 = all) that see most of its points in front (on a sample of up to 256 of them;
+    ties in `frames`' order), so the cost grows with the frames, not with their square."""
+    if max_views < 0:
+        raise ValueError(f"max_views must be >= 0, got {max_views}")
     out: dict[str, np.ndarray] = {}
     if reflector.polygon is None or reflector.material == "glass":
         return out
@@ -183,12 +187,14 @@ def reflector_floaters(frames: dict, reflector: Reflector, rel_tol: float = 0.02
         X = cam.unproject(np.c_[us, vs].astype(np.float64), d[vs, us])
         confirm = np.zeros(len(X), np.int32)
         refute = np.zeros(len(X), np.int32)
-        for other, (dj, cj) in frames.items():
-            if other == name:
-                continue
-            uv, z = cj.project(X)
-            iu, iv = np.round(uv[:, 0]), np.round(uv[:, 1])
-            ok = (z > 0) & (iu >= 0) & (iu < cj.width) & (iv >= 0) & (iv < cj.height)
+        others = [o for o in frames if o != name]
+        if max_views and len(others) > max_views:
+            sample = X[::max(1, len(X) // 256)]
+            others = sorted(others, key=lambda o: -np.count_nonzero(_seen(frames[o][1], sample)[0]))
+            others = others[:max_views]
+        for other in others:
+            dj, cj = frames[other]
+            ok, iu, iv, z = _seen(cj, X)
             seen = np.zeros(len(X))
             seen[ok] = np.asarray(dj)[iv[ok].astype(int), iu[ok].astype(int)]
             ok &= seen > 0
@@ -198,6 +204,15 @@ def reflector_floaters(frames: dict, reflector: Reflector, rel_tol: float = 0.02
         m[vs, us] = refute > confirm
         out[name] = m
     return out
+
+
+def _seen(cam: Camera, points: np.ndarray):
+    """(ok, column, row, z): which of the (N, 3) points lie in front of `cam` with their nearest
+    pixel in its image, that pixel (float, rounded) and their z-depth."""
+    uv, z = cam.project(points)
+    iu, iv = np.round(uv[:, 0]), np.round(uv[:, 1])
+    ok = (z > 0) & (iu >= 0) & (iu < cam.width) & (iv >= 0) & (iv < cam.height)
+    return ok, iu, iv, z
 
 
 def mirror_world_points(points: np.ndarray, reflectors: Sequence[Reflector],
@@ -212,9 +227,7 @@ def mirror_world_points(points: np.ndarray, reflectors: Sequence[Reflector],
         raise ValueError(f"points must be (N, 3), got {pts.shape}")
     out = np.zeros(len(pts), bool)
     for cam in cameras:
-        uv, z = cam.project(pts)
-        iu, iv = np.round(uv[:, 0]), np.round(uv[:, 1])
-        ok = (z > 0) & (iu >= 0) & (iu < cam.width) & (iv >= 0) & (iv < cam.height)
+        ok, iu, iv, z = _seen(cam, pts)
         idx = np.nonzero(ok)[0]
         iu, iv = iu[idx].astype(int), iv[idx].astype(int)
         for r in reflectors:

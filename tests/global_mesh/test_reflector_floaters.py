@@ -59,3 +59,20 @@ def test_glass_and_unbounded_reflectors_flag_nothing():
     glass = Reflector("pane", MIRROR.plane, beta=0.1, polygon=MIRROR.polygon, material="glass")
     plane_only = Reflector("wall", MIRROR.plane, beta=1.0, polygon=None, material="mirror")
     assert reflector_floaters(frames, glass) == {} and reflector_floaters(frames, plane_only) == {}
+
+
+def test_max_views_checks_against_the_frames_that_see_the_points():
+    """Bounded to 2 other frames, the check still refutes the floater and keeps the card; the
+    frames looking away from the mirror, listed first, are not among the 2."""
+    frames, floater = _frames()
+    K = Camera.intrinsics_from_fov(W, H, 90)
+    away = {f"a{i}": (np.full((H, W), 5.0), Camera.look_at([0.1 * i, 0, 0], [0.1 * i, 0, -1],
+                                                            [0, -1, 0], K, W, H)) for i in range(3)}
+    frames = {**away, **frames}
+    flagged = reflector_floaters(frames, MIRROR, max_views=2)
+    assert np.array_equal(flagged["v2"] & floater, floater)
+    for name in ("v0", "v2", "v4"):
+        depth, cam = frames[name]
+        card = polygon_mask(cam, CARD)
+        assert np.count_nonzero(flagged.get(name, np.zeros_like(card)) & card) <= 0.1 * card.sum()
+    assert reflector_floaters(frames, MIRROR, max_views=0).keys() == flagged.keys()
