@@ -171,15 +171,16 @@ def reflector_floaters(frames: dict, reflector: Reflector, rel_tol: float = 0.02
     ties in `frames`' order), so the cost grows with the frames, not with their square."""
     if max_views < 0:
         raise ValueError(f"max_views must be >= 0, got {max_views}")
+    for name, (depth, cam) in frames.items():
+        if np.shape(depth) != (cam.height, cam.width):
+            raise ValueError(f"{name}: depth {np.shape(depth)} does not match its camera "
+                             f"{cam.height}x{cam.width}")
     out: dict[str, np.ndarray] = {}
     if reflector.polygon is None or reflector.material == "glass":
         return out
     poly = np.asarray(reflector.polygon)
     for name, (depth, cam) in frames.items():
         d = np.asarray(depth, np.float64)
-        if d.shape != (cam.height, cam.width):
-            raise ValueError(f"{name}: depth {d.shape} does not match its camera "
-                             f"{cam.height}x{cam.width}")
         front = polygon_mask(cam, poly) & (d > 0) & (d < plane_depth(cam, reflector.plane) * (1.0 - rel_tol))
         vs, us = np.nonzero(front)
         if len(vs) == 0:

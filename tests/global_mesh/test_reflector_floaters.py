@@ -2,6 +2,7 @@
 puts it and stays; a surface seen by one frame only, where the others look through it at the
 mirror world (MVS's wrong matches of a screen's highlights), is taken as the reflector."""
 import numpy as np
+import pytest
 
 from ibr_pipeline.geometry.fusion import apply_reflectors, plane_depth, polygon_mask, reflector_floaters
 from ibr_pipeline.scene import Camera, Reflector
@@ -76,3 +77,10 @@ def test_max_views_checks_against_the_frames_that_see_the_points():
         card = polygon_mask(cam, CARD)
         assert np.count_nonzero(flagged.get(name, np.zeros_like(card)) & card) <= 0.1 * card.sum()
     assert reflector_floaters(frames, MIRROR, max_views=0).keys() == flagged.keys()
+
+
+def test_a_depth_frame_of_the_wrong_size_is_named():
+    frames, _ = _frames()
+    frames["v3"] = (frames["v3"][0][:-1], frames["v3"][1])
+    with pytest.raises(ValueError, match="v3"):
+        reflector_floaters(frames, MIRROR)
