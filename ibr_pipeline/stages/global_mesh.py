@@ -276,13 +276,17 @@ def run(ctx: StageContext) -> None:
     report["depth_max"] = {"value": far, "auto": not cfg.fusion.depth_max}
     fopts = dataclasses.replace(cfg.fusion, voxel_size=voxel, depth_max=far)
 
+    refuted_by: dict = {}  # reflector name -> reflector_floaters: a second fusion reuses them
+
     def fuse(refls):
         stats = {"reflector_pixels": 0}
         if dense == "rgbd":
             frames = _depth_frames(ctx, cams, depth_views, refls, view_masks, stats)
         else:
-            floaters = {r.name: reflector_floaters(depths, r) for r in refls
-                        if cfg.reflector_floaters}
+            for r in refls:
+                if cfg.reflector_floaters and r.name not in refuted_by:
+                    refuted_by[r.name] = reflector_floaters(depths, r)
+            floaters = {r.name: refuted_by[r.name] for r in refls if r.name in refuted_by}
             stats["floater_pixels"] = sum(int(m.sum()) for f in floaters.values() for m in f.values())
             if stats["floater_pixels"]:
                 log.info("global_mesh: %d MVS pixels in front of %s, seen through by more views "
